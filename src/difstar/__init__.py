@@ -1,1 +1,37 @@
-"""difstar."""
+"""difstar: a differentiable JAX simulator of the starburst effect.
+
+The chain, in the order data flows: pupil → atf → psf → otf → image → sensor → cfa →
+demosaic → colour, composed by :func:`simulate`. Fitting and design call ``simulate``.
+The command line and file I/O live in ``difstar.io`` and ``difstar.cli``.
+"""
+
+from ._pupil import (
+    AbstractPupil as AbstractPupil,
+    Circle as Circle,
+    Mask as Mask,
+    Obstructed as Obstructed,
+    Polygon as Polygon,
+    RegularPolygon as RegularPolygon,
+    Spiders as Spiders,
+)
+from ._geometry import Geometry as Geometry, camera_geometry as camera_geometry
+from ._atf import atf as atf
+from ._psf import SamplingError as SamplingError, psf as psf, sampling_report as sampling_report
+from ._otf import mtf as mtf, otf as otf
+from ._image import DiscSource as DiscSource, geometric_image as geometric_image
+from ._sensor import Response as Response, response_curve as response_curve
+from ._chain import (
+    Camera as Camera,
+    Grid as Grid,
+    Lens as Lens,
+    Prediction as Prediction,
+    Scene as Scene,
+    Sensor as Sensor,
+    check_sampling as check_sampling,
+    geometry_of as geometry_of,
+    needs_defocus as needs_defocus,
+    simulate as simulate,
+)
+from ._examples import paper_camera as paper_camera, paper_grid as paper_grid
+
+__version__ = "0.1.0"

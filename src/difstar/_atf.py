@@ -1,0 +1,115 @@
+"""Amplitude transfer function: the exit pupil sampled on the frequency grid, with the
+defocus phase (paper Eq. 2–4, in the Fresnel form of DESIGN.md).
+
+For a sensor at z_R from the exit pupil and an in-focus image at z_i = z_R − Δz, the
+Fresnel integral over the pupil gives
+
+    H(f) = P(λ z_R f) exp(i π λ z_R Δz / z_i |f|²),
+
+the pupil scaled by λ z_R and the phase k W with W = ½ (1/z_i − 1/z_R) |x|². The paper's
+form (``scaling="paper"``) scales the pupil by λ z_i and uses the sensor at z_i + Δz.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+
+from ._custom_types import Array, Complex, Float
+from ._pupil import AbstractPupil
+
+SCALINGS = ("fresnel", "paper")
+
+
+def centred_coordinates(n: int, pitch) -> Array:
+    """Coordinates of a centred axis: index j ↦ (j − n // 2) · pitch."""
+    return (jnp.arange(n) - n // 2) * pitch
+
+
+def frequency_axes(shape: tuple[int, int], dx) -> tuple[Array, Array]:
+    """Centred spatial-frequency axes (cycles/metre) of a ``shape`` grid of pitch ``dx``.
+
+    Returns (fx along columns, fy along rows); fy grows upwards (decreasing row index),
+    matching the pupil's y-up convention.
+    """
+    h, w = shape
+    fx = centred_coordinates(w, 1.0 / (w * dx))
+    fy = -centred_coordinates(h, 1.0 / (h * dx))
+    return fx, fy
+
+
+def pupil_scale(wavelength, z_image, defocus, scaling: str = "fresnel"):
+    """Metres in the pupil per cycle/metre in the image: λ z_R (Fresnel) or λ z_i (paper)."""
+    if scaling == "fresnel":
+        return wavelength * z_image
+    if scaling == "paper":
+        return wavelength * (z_image - defocus)
+    raise ValueError(f"scaling must be one of {SCALINGS}; got {scaling!r}.")
+
+
+def defocus_phase_coefficient(wavelength, z_image, defocus, scaling: str = "fresnel"):
+    """c such that the ATF phase is c |f|² (radians per (cycles/metre)²)."""
+    z_i = z_image - defocus
+    if scaling == "fresnel":
+        return math.pi * wavelength * z_image * defocus / z_i
+    # Paper Eq. 4: k λ² z_i² / 2 · (1/z_i − 1/(z_i + Δz)) = π λ z_i Δz / (z_i + Δz)
+    return math.pi * wavelength * z_i * defocus / (z_i + defocus)
+
+
+def atf(
+    pupil: AbstractPupil,
+    *,
+    wavelength,
+    z_image,
+    defocus=0.0,
+    dx,
+    shape: tuple[int, int],
+    scaling: str = "fresnel",
+    use_defocus: bool = True,
+    shift: tuple[float, float] = (0.0, 0.0),
+    cell_average: bool = True,
+) -> Complex[Array, "h w"]:
+    """The centred ATF on a ``shape`` grid whose image-plane pitch is ``dx`` metres.
+
+    ``wavelength``, ``z_image`` (exit pupil to sensor) and ``defocus`` (Δz) in metres.
+    ``use_defocus=False`` drops the phase term entirely (a static choice: at Δz = 0 the
+    phase is identically 1 and computing it is wasted work). ``shift`` (rows, cols), in
+    grid samples, moves the resulting PSF by a phase ramp (used to centre pixel blocks).
+
+    ``cell_average`` makes the whole ATF a cell average, like the pupil's area coverage:
+    the defocus factor exp(i c |f|²) is averaged over each cell (to first order in the
+    phase, a sinc of its gradient). The PSF then divides the cell's transform out exactly
+    (``_psf.cell_correction``); without this factor that division would be wrong for
+    defocused PSFs.
+    """
+    fx, fy = frequency_axes(shape, dx)
+    scale = pupil_scale(wavelength, z_image, defocus, scaling)
+    df = (1.0 / (shape[1] * dx), 1.0 / (shape[0] * dx))
+    # The pupil cell is the frequency cell scaled to the pupil (square when h == w).
+    cell = scale * jnp.sqrt(df[0] * df[1])
+    x = (scale * fx)[None, :]
+    y = (scale * fy)[:, None]
+    amplitude = pupil.coverage(x, y, cell)
+    phase = jnp.zeros_like(amplitude)
+    if use_defocus:
+        c = defocus_phase_coefficient(wavelength, z_image, defocus, scaling)
+        phase = phase + c * (fx[None, :] ** 2 + fy[:, None] ** 2)
+        if cell_average:
+            amplitude = amplitude * (
+                jnp.sinc(c * fx * df[0] / math.pi)[None, :]
+                * jnp.sinc(c * fy * df[1] / math.pi)[:, None]
+            )
+    if shift != (0.0, 0.0):
+        h, w = shape
+        kr = (jnp.arange(h) - h // 2)[:, None]
+        kc = (jnp.arange(w) - w // 2)[None, :]
+        phase = phase - 2 * math.pi * (kr * shift[0] / h + kc * shift[1] / w)
+    if use_defocus or shift != (0.0, 0.0):
+        return amplitude * jnp.exp(1j * phase)
+    return amplitude.astype(jnp.result_type(amplitude.dtype, jnp.complex64))
+
+
+def pupil_samples(pupil_radius, *, wavelength, z_image, dx, n: int) -> Float[Array, ""]:
+    """Number of frequency-grid samples across the pupil diameter."""
+    return 2 * pupil_radius * n * dx / (wavelength * z_image)

@@ -1,0 +1,335 @@
+"""The whole chain in one pure function: camera + scene → PSFs, RAW mosaic, sRGB.
+
+``simulate`` is what jit and grad see whole; fitting and design call it and nothing
+lower. What fixes array shapes (grid size, oversampling, crop, Bayer layout, whether the
+defocus phase is computed at all, whether to demosaic) is static and lives in ``Grid``
+and in the static fields of ``Sensor``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._atf import SCALINGS, atf
+from ._cfa import mosaic
+from ._colour import render_srgb
+from ._custom_types import Array, Float
+from ._geometry import Geometry, camera_geometry, check_geometry
+from ._image import DiscSource, convolve, geometric_image, image_spectrum
+from ._otf import otf
+from ._psf import (
+    SamplingError,
+    _concrete,
+    bin_pixels,
+    block_centring_shift,
+    intensity_from_atf,
+    sampling_report,
+)
+from ._pupil import AbstractPupil
+from ._sensor import Response, sensor
+
+PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+
+
+class Lens(eqx.Module):
+    """A prime lens focused by extension (paper Fig. 3, Eq. 6). Lengths in metres.
+
+    pupil: the exit-pupil shape (its size is the exit pupil's, not the stop's).
+    focal_length: f (the paper's Nikkor: 51.5 mm).
+    focus_distance: r_f, from the sensor to the plane of best focus (``inf`` allowed).
+    principal_separation: z_p, front to rear principal plane (paper: about −3 mm).
+    pupil_magnification: m_p, exit over entrance pupil diameter; puts the exit pupil
+        f·m_p in front of the sensor at infinity focus.
+    defocus: Δz override (metres). ``None`` derives Δz from the geometry; a value makes
+        Δz a parameter of its own (for fitting).
+    """
+
+    pupil: AbstractPupil
+    focal_length: Float[Array, ""]
+    focus_distance: Float[Array, ""]
+    principal_separation: Float[Array, ""]
+    pupil_magnification: Float[Array, ""]
+    defocus: Float[Array, ""] | None
+
+    def __init__(
+        self,
+        pupil: AbstractPupil,
+        *,
+        focal_length,
+        focus_distance,
+        principal_separation=0.0,
+        pupil_magnification=1.0,
+        defocus=None,
+    ):
+        if not isinstance(pupil, AbstractPupil):
+            raise TypeError(
+                f"Lens.pupil must be a difstar pupil (RegularPolygon, Polygon, Circle, "
+                f"Obstructed, Mask); got {type(pupil).__name__}."
+            )
+        self.pupil = pupil
+        self.focal_length = jnp.asarray(focal_length, dtype=float)
+        self.focus_distance = jnp.asarray(focus_distance, dtype=float)
+        self.principal_separation = jnp.asarray(principal_separation, dtype=float)
+        self.pupil_magnification = jnp.asarray(pupil_magnification, dtype=float)
+        self.defocus = None if defocus is None else jnp.asarray(defocus, dtype=float)
+
+
+class Sensor(eqx.Module):
+    """Sensor, colour filter and rendering.
+
+    pixel_pitch: metres (static). pattern: Bayer layout (static).
+    wavelengths: (3,) metres, one per channel R, G, B (trichromatic model).
+    phi0: (3,) reference exposure per channel, seconds.
+    response: response-curve parameters. white_balance: (3,) gains R, G, B.
+    colour_matrix: (3, 3) camera RGB → linear sRGB.
+    """
+
+    pixel_pitch: float = eqx.field(static=True)
+    pattern: str = eqx.field(static=True)
+    wavelengths: Float[Array, "3"]
+    phi0: Float[Array, "3"]
+    response: Response
+    white_balance: Float[Array, "3"]
+    colour_matrix: Float[Array, "3 3"]
+
+    def __init__(
+        self,
+        *,
+        pixel_pitch: float,
+        pattern: str = "RGGB",
+        wavelengths=(600e-9, 530e-9, 450e-9),
+        phi0=(0.1, 0.1, 0.1),
+        response: Response | None = None,
+        white_balance=(2.0, 1.0, 2.0),
+        colour_matrix=None,
+    ):
+        if pattern not in PATTERNS:
+            raise ValueError(f"Sensor.pattern must be one of {PATTERNS}; got {pattern!r}.")
+        p = float(pixel_pitch)
+        if not p > 0:
+            raise ValueError(f"Sensor.pixel_pitch must be > 0 metres; got {p}.")
+        self.pixel_pitch = p
+        self.pattern = pattern
+        self.wavelengths = jnp.asarray(wavelengths, dtype=float)
+        self.phi0 = jnp.asarray(phi0, dtype=float)
+        self.response = Response() if response is None else response
+        self.white_balance = jnp.asarray(white_balance, dtype=float)
+        self.colour_matrix = (
+            jnp.eye(3) if colour_matrix is None else jnp.asarray(colour_matrix, dtype=float)
+        )
+        for name, v in (("wavelengths", self.wavelengths), ("phi0", self.phi0),
+                        ("white_balance", self.white_balance)):
+            if v.shape != (3,):
+                raise ValueError(f"Sensor.{name} must have 3 values (R, G, B); got shape {v.shape}.")
+        if self.colour_matrix.shape != (3, 3):
+            raise ValueError(
+                f"Sensor.colour_matrix must be 3 x 3; got shape {self.colour_matrix.shape}."
+            )
+
+
+class Camera(eqx.Module):
+    lens: Lens
+    sensor: Sensor
+
+
+class Scene(eqx.Module):
+    """What is photographed and for how long.
+
+    object_distance: sensor to object plane, metres. sources: discs in the object plane.
+    exposure_time: t, seconds. background: (3,) uniform light added to the image, in
+    the sources' relative radiance units.
+    """
+
+    object_distance: Float[Array, ""]
+    sources: tuple[DiscSource, ...]
+    exposure_time: Float[Array, ""]
+    background: Float[Array, "3"]
+
+    def __init__(self, *, object_distance, sources, exposure_time, background=(0.0, 0.0, 0.0)):
+        self.object_distance = jnp.asarray(object_distance, dtype=float)
+        self.sources = tuple(sources)
+        if not self.sources:
+            raise ValueError("Scene.sources is empty; give at least one DiscSource.")
+        self.exposure_time = jnp.asarray(exposure_time, dtype=float)
+        self.background = jnp.broadcast_to(jnp.asarray(background, dtype=float), (3,))
+
+
+class Grid(eqx.Module):
+    """Static sampling: an n × n pixel simulation grid, q sub-samples per pixel, an output
+    crop (rows, cols) centred on the grid, whether the defocus phase is computed, and
+    whether to render sRGB (``raw_only`` stops after the CFA)."""
+
+    n: int = eqx.field(static=True)
+    oversample: int = eqx.field(static=True, default=1)
+    crop: tuple[int, int] = eqx.field(static=True, default=(256, 256))
+    use_defocus: bool = eqx.field(static=True, default=True)
+    raw_only: bool = eqx.field(static=True, default=False)
+    scaling: str = eqx.field(static=True, default="fresnel")
+
+    def __check_init__(self):
+        if self.n < 8:
+            raise ValueError(f"Grid.n must be >= 8 pixels; got {self.n}.")
+        if self.oversample < 1:
+            raise ValueError(f"Grid.oversample must be >= 1; got {self.oversample}.")
+        if self.crop[0] > self.n or self.crop[1] > self.n:
+            raise ValueError(f"Grid.crop {self.crop} is larger than the grid n = {self.n}.")
+        if self.crop[0] % 2 or self.crop[1] % 2:
+            raise ValueError(f"Grid.crop {self.crop} must be even (whole Bayer quads).")
+        if self.scaling not in SCALINGS:
+            raise ValueError(f"Grid.scaling must be one of {SCALINGS}; got {self.scaling!r}.")
+
+
+class Prediction(eqx.Module):
+    """Everything ``simulate`` returns; images are cropped to ``grid.crop``.
+
+    psf: (3, h, w) per-channel PSF, each summing to 1 over the whole grid.
+    image: (3, h, w) C, the linear image of the normalised object.
+    zeta: (3, h, w) normalised pixel values per channel before the CFA.
+    cfa: (h, w) the RAW mosaic ζ in [0, 1].
+    srgb: (3, h, w) the rendered sRGB image in [0, 1] (None when ``raw_only``).
+    geometry: the derived geometry (Δz, magnification, exit-pupil distance...).
+    """
+
+    psf: Float[Array, "3 h w"]
+    image: Float[Array, "3 h w"]
+    zeta: Float[Array, "3 h w"]
+    cfa: Float[Array, "h w"]
+    srgb: Float[Array, "3 h w"] | None
+    geometry: Geometry
+
+
+def geometry_of(camera: Camera, scene: Scene) -> Geometry:
+    """The camera's geometry for this scene, with the lens's Δz override applied."""
+    lens = camera.lens
+    g = camera_geometry(
+        focal_length=lens.focal_length,
+        object_distance=scene.object_distance,
+        focus_distance=lens.focus_distance,
+        principal_separation=lens.principal_separation,
+        pupil_magnification=lens.pupil_magnification,
+        pupil_radius=lens.pupil.max_radius(),
+    )
+    if lens.defocus is not None:
+        z_i = g.z_exit_pupil - lens.defocus
+        scale = g.z_exit_pupil / z_i
+        m = -(g.s_image / g.s_object) * scale
+        g = eqx.tree_at(lambda t: (t.defocus, t.z_in_focus, t.magnification), g,
+                        (lens.defocus, z_i, m))
+    return g
+
+
+def _crop(a: Array, crop: tuple[int, int]) -> Array:
+    n0, n1 = a.shape[-2:]
+    r0 = n0 // 2 - crop[0] // 2
+    c0 = n1 // 2 - crop[1] // 2
+    return a[..., r0 : r0 + crop[0], c0 : c0 + crop[1]]
+
+
+def channel_psf(pupil, wavelength, geometry: Geometry, *, pixel_pitch: float, grid: Grid):
+    """One channel's PSF on the full n × n grid (pixel-integrated, unit sum)."""
+    n, q = grid.n, grid.oversample
+    s = block_centring_shift(n, q)
+    h_atf = atf(
+        pupil, wavelength=wavelength, z_image=geometry.z_exit_pupil,
+        defocus=geometry.defocus, dx=pixel_pitch / q, shape=(n * q, n * q),
+        scaling=grid.scaling, use_defocus=grid.use_defocus, shift=(s, s),
+        cell_average=pupil.area_coverage,
+    )
+    out = bin_pixels(intensity_from_atf(h_atf, correct_cell=pupil.area_coverage), q)
+    return out / jnp.sum(out)
+
+
+def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
+    """Predict the PSFs, the linear image, the RAW mosaic and the sRGB image.
+
+    Pure and jittable (``jax.jit(simulate)``, with ``grid`` static through equinox's
+    filtering, e.g. ``eqx.filter_jit``); differentiable with respect to every array in
+    ``camera`` and ``scene``. When called with concrete values it first checks the
+    sampling rules and raises :class:`SamplingError` naming the rule and the fix.
+    """
+    check_sampling(camera, scene, grid)
+    g = geometry_of(camera, scene)
+    sen = camera.sensor
+    n = grid.n
+    b = geometric_image(
+        scene.sources, magnification=g.magnification, pixel_pitch=sen.pixel_pitch, shape=(n, n)
+    )
+    b_ft = image_spectrum(b)  # once, shared by the three channels' convolutions
+
+    def one(wavelength, b_ft_c):
+        p = channel_psf(camera.lens.pupil, wavelength, g, pixel_pitch=sen.pixel_pitch, grid=grid)
+        c = convolve(b_ft_c, otf(p), (n, n))
+        return _crop(p, grid.crop), _crop(c, grid.crop)
+
+    psfs, image = jax.vmap(one)(sen.wavelengths, b_ft)
+    image = image + scene.background[:, None, None]
+    zeta = sensor(image, exposure_time=scene.exposure_time, phi0=sen.phi0, response=sen.response)
+    cfa = mosaic(zeta, sen.pattern)
+    srgb = None
+    if not grid.raw_only:
+        srgb = render_srgb(
+            cfa, sen.pattern, white_balance=sen.white_balance, matrix=sen.colour_matrix
+        )
+    return Prediction(psfs, image, zeta, cfa, srgb, g)
+
+
+def check_sampling(camera: Camera, scene: Scene, grid: Grid) -> None:
+    """Raise SamplingError when the grid breaks a sampling rule (concrete inputs only)."""
+    lens = camera.lens
+    r_f = _concrete(lens.focus_distance)
+    r_o = _concrete(scene.object_distance)
+    f = _concrete(lens.focal_length)
+    if f is None or r_o is None or r_f is None:
+        return
+    check_geometry(
+        focal_length=f, object_distance=r_o, focus_distance=r_f,
+        principal_separation=float(lens.principal_separation),
+    )
+    g = geometry_of(camera, scene)
+    vals = [_concrete(v) for v in (lens.pupil.max_radius(), g.z_exit_pupil, g.defocus)]
+    lams = [_concrete(v) for v in np.atleast_1d(camera.sensor.wavelengths)]
+    if any(v is None for v in vals + lams):
+        return
+    r, z_r, dz = vals
+    fails = []
+    for lam in sorted(set(lams)):
+        fails += [
+            f"[λ = {lam * 1e9:.4g} nm] {m}"
+            for m in sampling_report(
+                pupil_radius=r, wavelength=lam, z_image=z_r, defocus=dz,
+                pixel_pitch=camera.sensor.pixel_pitch, oversample=grid.oversample,
+                n=grid.n * grid.oversample, scaling=grid.scaling,
+            )
+        ]
+    if not grid.use_defocus and abs(dz) > 0:
+        # Without the phase the model is wrong by the defocus's peak phase; allow only
+        # a negligible amount (< 0.01 rad at the pupil edge).
+        peak = math.pi * r * r * abs(dz) / (min(lams) * z_r * (z_r - dz))
+        if peak > 1e-2:
+            fails.append(
+                f"Grid.use_defocus is False but Δz = {dz * 1e3:.4g} mm gives "
+                f"{peak:.3g} rad of defocus phase; set use_defocus=True."
+            )
+    if fails:
+        raise SamplingError("difstar.simulate: " + " ".join(fails))
+
+
+def needs_defocus(camera: Camera, scene: Scene, *, tolerance: float = 1e-2) -> bool:
+    """Whether the defocus phase is worth computing (peak phase above ``tolerance`` rad)."""
+    g = geometry_of(camera, scene)
+    r = float(camera.lens.pupil.max_radius())
+    dz = float(g.defocus)
+    z_r = float(g.z_exit_pupil)
+    lam = float(jnp.min(camera.sensor.wavelengths))
+    return math.pi * r * r * abs(dz) / (lam * z_r * (z_r - dz)) > tolerance
+
+
+__all__ = [
+    "Camera", "Lens", "Sensor", "Scene", "Grid", "Prediction", "DiscSource",
+    "simulate", "geometry_of", "check_sampling", "needs_defocus", "SamplingError",
+]
