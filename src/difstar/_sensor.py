@@ -6,7 +6,7 @@ C is the image of the normalised object intensity, t the exposure time (seconds)
 low exposure, a linear part, a knee into saturation:
 
     u = sqrt(E² + e_t²) − e_t                  (toe of width ~e_t; u ≈ E − e_t above it)
-    ζ = u − softplus(k (u − 1)) / k             (knee of width ~1/k; ζ → 1)
+    ζ = 1 − softplus(k (1 − u)) / softplus(k)   (knee of width ~1/k; ζ(0) = 0, ζ → 1)
 
 Both steps are smooth and increasing, so Z has finite gradients everywhere, including at
 E = 0 and deep in saturation.
@@ -18,7 +18,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._custom_types import Array, Float
+from ._custom_types import Array, ArrayLike, Float
 
 
 class Response(eqx.Module):
@@ -42,11 +42,13 @@ def _safe_hypot(a, b):
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, r2, 1.0)), 0.0)
 
 
-def response_curve(exposure: Array, toe, knee) -> Array:
+def response_curve(exposure: ArrayLike, toe, knee) -> Array:
     """Z(E) for one channel (or broadcast parameters)."""
     e = jnp.maximum(exposure, 0.0)
     u = _safe_hypot(e, toe) - toe
-    return u - jax.nn.softplus(knee * (u - 1.0)) / knee
+    # u − softplus(k(u − 1))/k rescaled so that Z(0) = 0 exactly; written in this form
+    # so saturation has no cancellation
+    return 1.0 - jax.nn.softplus(knee * (1.0 - u)) / jax.nn.softplus(knee)
 
 
 def exposure(image: Float[Array, "3 h w"], *, exposure_time, phi0: Float[Array, "3"]) -> Array:
