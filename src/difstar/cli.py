@@ -1,0 +1,201 @@
+"""The ``difstar`` command line (outer layer: files, progress, exit codes).
+
+    difstar predict SCENE.json --out DIR      predict RAW + sRGB for a scene file
+    difstar predict --example paper-focused --out DIR
+    difstar example NAME [--crop H W]         print a built-in scene as JSON
+    difstar bench ...                         speed against error (BENCHMARKS.md)
+    difstar synth ... / difstar fit ...       synthetic captures and fitting
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+EXAMPLES = ("paper-focused", "paper-defocused")
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def example_document(name: str, *, crop=None) -> dict:
+    import difstar
+    from difstar._examples import PAPER
+    from difstar.io._scene import scene_to_dict
+
+    if name not in EXAMPLES:
+        raise SystemExit(f"difstar: unknown example {name!r}; choose one of {', '.join(EXAMPLES)}.")
+    config = name.split("-", 1)[1]
+    camera, scene = difstar.paper_camera(config)
+    crop = list(PAPER["crop"]) if crop is None else list(crop)
+    return scene_to_dict(camera, scene, {"crop": crop}, name=name)
+
+
+def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None) -> dict:
+    """Predict one scene document and write the outputs to ``out`` (whole or not at all)."""
+    import equinox as eqx
+    import jax
+    import numpy as np
+
+    import difstar
+    from difstar._sampling import choose_grid
+    from difstar.io._output import output_dir, write_json, write_png_srgb, write_tiff_raw
+    from difstar.io._scene import scene_from_dict
+
+    camera, scene, gopt = scene_from_dict(doc, source=source)
+    if crop is not None:
+        gopt["crop"] = list(crop)
+    crop_t = tuple(gopt.get("crop", (512, 512)))
+    grid = choose_grid(
+        camera, scene, crop=crop_t, padding=gopt.get("padding", 1.0), n=gopt.get("n"),
+        oversample=gopt.get("oversample"), raw_only=gopt.get("raw_only", False),
+        scaling=gopt.get("scaling", "fresnel"),
+    )
+    difstar.check_sampling(camera, scene, grid)
+    _log(f"difstar: grid n = {grid.n}, oversample = {grid.oversample}, crop = {grid.crop}, "
+         f"defocus phase {'on' if grid.use_defocus else 'off (Δz negligible)'}")
+    run = eqx.filter_jit(difstar.simulate)
+    t0 = time.perf_counter()
+    _log("difstar: compiling the chain ...")
+    compiled = run.lower(camera, scene, grid).compile()
+    t_compile = time.perf_counter() - t0
+    _log(f"difstar: compiled in {t_compile:.1f} s; running ...")
+    t0 = time.perf_counter()
+    pred = jax.block_until_ready(compiled(camera, scene))
+    t_run = time.perf_counter() - t0
+    _log(f"difstar: ran in {t_run:.2f} s")
+    g = pred.geometry
+    derived = {
+        "source": source,
+        "geometry": {
+            "lens_extension_m": float(g.extension),
+            "s_prime_m": float(g.s_prime),
+            "object_to_front_principal_plane_m": float(g.s_object),
+            "image_distance_from_rear_principal_plane_m": float(g.s_image),
+            "exit_pupil_to_sensor_m": float(g.z_exit_pupil),
+            "exit_pupil_to_in_focus_image_m": float(g.z_in_focus),
+            "defocus_m": float(g.defocus),
+            "magnification": float(g.magnification),
+            "working_f_number": float(g.working_f_number),
+        },
+        "grid": {
+            "n": grid.n, "oversample": grid.oversample, "crop": list(grid.crop),
+            "pixel_pitch_m": camera.sensor.pixel_pitch,
+            "grid_pitch_m": camera.sensor.pixel_pitch / grid.oversample,
+            "field_m": grid.n * camera.sensor.pixel_pitch,
+            "defocus_phase": grid.use_defocus, "scaling": grid.scaling,
+        },
+        "timing_s": {"compile": t_compile, "run": t_run},
+        "summary": {
+            "saturated_fraction": float(np.mean(np.asarray(pred.cfa) > 0.999)),
+            "psf_peak": [float(x) for x in np.asarray(pred.psf).max(axis=(1, 2))],
+        },
+        "jax": {"version": jax.__version__, "backend": jax.default_backend(),
+                "x64": bool(jax.config.jax_enable_x64)},
+    }
+    with output_dir(out, overwrite=overwrite) as tmp:
+        if pred.srgb is not None:
+            write_png_srgb(tmp / "srgb.png", pred.srgb)
+        write_tiff_raw(tmp / "raw.tiff", pred.cfa, pattern=camera.sensor.pattern)
+        write_psf_png(tmp / "psf_log.png", np.asarray(pred.psf))
+        write_json(tmp / "scene.json", doc)
+        write_json(tmp / "derived.json", derived)
+    _log(f"difstar: wrote {out}/ (srgb.png, raw.tiff, psf_log.png, scene.json, derived.json)")
+    return derived
+
+
+def write_psf_png(path, psf) -> None:
+    """The three PSFs on a log scale (1e-7 … peak) as one RGB picture."""
+    import numpy as np
+
+    from difstar.io._output import write_png_srgb
+
+    lo = 1e-7
+    peak = psf.max()
+    img = (np.log10(np.clip(psf, lo * peak, None) / peak) - np.log10(lo)) / -np.log10(lo)
+    write_png_srgb(path, img)
+
+
+def _cmd_predict(a) -> int:
+    from difstar.io._scene import read_json
+
+    if (a.scene is None) == (a.example is None):
+        raise SystemExit("difstar predict: give a scene file or --example NAME (one of them).")
+    if a.example:
+        doc = example_document(a.example)
+        source = f"example:{a.example}"
+    else:
+        doc = read_json(a.scene, what="scene file")
+        source = str(a.scene)
+    run_predict(doc, source=source, out=Path(a.out), overwrite=a.overwrite, crop=a.crop)
+    return 0
+
+
+def _cmd_example(a) -> int:
+    doc = example_document(a.name, crop=a.crop)
+    text = json.dumps(doc, indent=2) + "\n"
+    if a.out:
+        p = Path(a.out)
+        if p.exists() and not a.overwrite:
+            raise SystemExit(f"difstar example: {p} exists; pass --overwrite to replace it.")
+        tmp = p.with_name(f".{p.name}.tmp")
+        tmp.write_text(text)
+        tmp.replace(p)
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="difstar", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--x64", action="store_true", help="compute in float64 (default float32)")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("predict", help="predict RAW mosaic + sRGB image for a scene")
+    p.add_argument("scene", nargs="?", help="scene JSON (data_schemas/scene.schema.json)")
+    p.add_argument("--example", choices=EXAMPLES, help="use a built-in scene instead of a file")
+    p.add_argument("--out", required=True, help="output directory (written whole or not at all)")
+    p.add_argument("--crop", nargs=2, type=int, metavar=("H", "W"), help="output size in pixels")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    p.set_defaults(func=_cmd_predict)
+
+    p = sub.add_parser("example", help="print a built-in scene as JSON")
+    p.add_argument("name", choices=EXAMPLES)
+    p.add_argument("--crop", nargs=2, type=int, metavar=("H", "W"))
+    p.add_argument("--out", help="write to this file instead of stdout")
+    p.add_argument("--overwrite", action="store_true")
+    p.set_defaults(func=_cmd_example)
+
+    for name, module in (("bench", "difstar._bench_cli"), ("synth", "difstar._fit_cli"),
+                         ("fit", "difstar._fit_cli"), ("design", "difstar._design_cli")):
+        try:
+            mod = __import__(module, fromlist=["register"])
+        except ImportError:
+            continue
+        mod.register(sub, name)
+    return ap
+
+
+def main(argv=None) -> int:
+    ap = build_parser()
+    a = ap.parse_args(argv)
+    if a.x64:
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    from difstar.io._output import OutputExistsError
+    from difstar.io._scene import SceneError
+
+    try:
+        return int(a.func(a) or 0)
+    except (SceneError, OutputExistsError, ValueError) as exc:
+        _log(f"difstar: error: {exc}")
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

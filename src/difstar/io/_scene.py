@@ -1,0 +1,214 @@
+"""Scene files: JSON checked against ``data_schemas/scene.schema.json`` ↔ difstar objects.
+
+Outer layer: reads files, validates, builds the PyTrees the core takes. Errors name the
+file and the field (a JSON path) and say what is expected.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SCHEMA_DIR_ENV = "DIFSTAR_SCHEMAS"
+
+
+class SceneError(ValueError):
+    """A scene file is missing, unreadable or invalid; the message names the field."""
+
+
+def schema_path(name: str) -> Path:
+    """Path of a JSON Schema shipped in the repository's ``data_schemas/`` (or packaged
+    beside the module when installed as a wheel)."""
+    here = Path(__file__).resolve()
+    for base in (here.parent / "schemas", here.parents[3] / "data_schemas"):
+        p = base / f"{name}.schema.json"
+        if p.is_file():
+            return p
+    raise FileNotFoundError(f"schema {name!r} not found beside difstar or in data_schemas/")
+
+
+def load_schema(name: str) -> dict:
+    return json.loads(schema_path(name).read_text())
+
+
+def validate(doc: Any, schema_name: str, *, source: str = "<document>") -> None:
+    """Validate ``doc`` against a schema; raise SceneError naming the field on failure."""
+    import jsonschema
+
+    schema = load_schema(schema_name)
+    validator = jsonschema.Draft202012Validator(schema)
+    errors = sorted(validator.iter_errors(doc), key=lambda e: list(e.absolute_path))
+    if errors:
+        e = jsonschema.exceptions.best_match(errors)
+        where = "/".join(str(p) for p in e.absolute_path) or "(top level)"
+        raise SceneError(f"{source}: field {where}: {e.message}")
+
+
+def read_json(path: str | Path, *, what: str = "file") -> dict:
+    p = Path(path)
+    if not p.is_file():
+        raise SceneError(f"{what} {p} does not exist (check the path).")
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError as exc:
+        raise SceneError(f"{p}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from exc
+
+
+def _pupil_from_dict(d: dict, *, focal_length: float, m_p: float, where: str):
+    import difstar
+
+    t = d["type"]
+    if t == "regular_polygon":
+        r = _radius(d, "circumradius", focal_length, m_p, where)
+        return difstar.RegularPolygon(int(d["n"]), r, float(d.get("rotation", 0.0)))
+    if t == "polygon":
+        try:
+            return difstar.Polygon(np.asarray(d["vertices"], float))
+        except ValueError as exc:
+            raise SceneError(f"{where}/vertices: {exc}") from exc
+    if t == "circle":
+        return difstar.Circle(_radius(d, "radius", focal_length, m_p, where))
+    if t == "obstructed":
+        outer = _pupil_from_dict(d["outer"], focal_length=focal_length, m_p=m_p, where=where + "/outer")
+        obs = difstar.Circle(d["obstruction_radius"]) if "obstruction_radius" in d else None
+        sp = None
+        if "spiders" in d:
+            s = d["spiders"]
+            sp = difstar.Spiders(int(s["n"]), s["width"], s.get("rotation", 0.0),
+                                 s.get("length", 2 * float(outer.max_radius())))
+        return difstar.Obstructed(outer, obs, sp)
+    raise SceneError(f"{where}/type: unknown pupil type {t!r}")
+
+
+def _radius(d, key, focal_length, m_p, where):
+    if key in d and "f_number" in d:
+        raise SceneError(f"{where}: give either {key} or f_number, not both.")
+    if key in d:
+        return float(d[key])
+    if "f_number" in d:
+        return m_p * focal_length / (2 * float(d["f_number"]))
+    raise SceneError(f"{where}: give {key} (metres) or f_number.")
+
+
+def scene_from_dict(doc: dict, *, source: str = "<scene>"):
+    """(camera, scene, grid options) from a validated scene document."""
+    import difstar
+
+    validate(doc, "scene", source=source)
+    cam = doc["camera"]
+    ld = cam["lens"]
+    f = float(ld["focal_length"])
+    m_p = float(ld.get("pupil_magnification", 1.0))
+    pupil = _pupil_from_dict(ld["pupil"], focal_length=f, m_p=m_p, where="camera/lens/pupil")
+    fd = ld["focus_distance"]
+    try:
+        lens = difstar.Lens(
+            pupil,
+            focal_length=f,
+            focus_distance=math.inf if fd == "inf" else float(fd),
+            principal_separation=float(ld.get("principal_separation", 0.0)),
+            pupil_magnification=m_p,
+            defocus=ld.get("defocus"),
+        )
+        sd = cam["sensor"]
+        resp = sd.get("response", {})
+        sensor = difstar.Sensor(
+            pixel_pitch=float(sd["pixel_pitch"]),
+            pattern=sd.get("pattern", "RGGB"),
+            wavelengths=sd.get("wavelengths", (600e-9, 530e-9, 450e-9)),
+            phi0=sd.get("phi0", (0.1, 0.1, 0.1)),
+            response=difstar.Response(resp.get("toe", (0.0, 0.0, 0.0)), resp.get("knee", (60.0,) * 3)),
+            white_balance=sd.get("white_balance", (2.0, 1.0, 2.0)),
+            colour_matrix=sd.get("colour_matrix"),
+        )
+        sc = doc["scene"]
+        sources = tuple(
+            difstar.DiscSource(s["radius"], s.get("position", (0.0, 0.0)), s.get("radiance", (1.0, 1.0, 1.0)))
+            for s in sc["sources"]
+        )
+        scene = difstar.Scene(
+            object_distance=float(sc["object_distance"]),
+            sources=sources,
+            exposure_time=float(sc["exposure_time"]),
+            background=sc.get("background", (0.0, 0.0, 0.0)),
+        )
+    except (ValueError, TypeError) as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise SceneError(f"{source}: {exc}") from exc
+    return difstar.Camera(lens, sensor), scene, dict(doc.get("grid", {}))
+
+
+def load_scene(path: str | Path):
+    """Read a scene JSON file → (camera, scene, grid options dict)."""
+    return scene_from_dict(read_json(path, what="scene file"), source=str(path))
+
+
+def scene_to_dict(camera, scene, grid_options: dict | None = None, *, name: str | None = None) -> dict:
+    """The JSON document (schema ``scene``) for a camera and scene."""
+    import difstar
+
+    def tolist(x):
+        return np.asarray(x).tolist()
+
+    def pupil_dict(p):
+        if isinstance(p, difstar.RegularPolygon):
+            return {"type": "regular_polygon", "n": p.n, "circumradius": float(p.circumradius),
+                    "rotation": float(p.rotation)}
+        if isinstance(p, difstar.Polygon):
+            return {"type": "polygon", "vertices": tolist(p.vertices)}
+        if isinstance(p, difstar.Circle):
+            return {"type": "circle", "radius": float(p.radius)}
+        if isinstance(p, difstar.Obstructed):
+            d = {"type": "obstructed", "outer": pupil_dict(p.outer)}
+            if p.obstruction is not None:
+                d["obstruction_radius"] = float(p.obstruction.radius)
+            if p.spiders is not None:
+                s = p.spiders
+                d["spiders"] = {"n": s.n, "width": float(s.width), "rotation": float(s.rotation),
+                                "length": float(s.length)}
+            return d
+        raise SceneError(f"cannot write a {type(p).__name__} pupil to a scene file")
+
+    lens, sen = camera.lens, camera.sensor
+    fd = float(lens.focus_distance)
+    doc = {
+        "camera": {
+            "lens": {
+                "focal_length": float(lens.focal_length),
+                "focus_distance": "inf" if math.isinf(fd) else fd,
+                "principal_separation": float(lens.principal_separation),
+                "pupil_magnification": float(lens.pupil_magnification),
+                "defocus": None if lens.defocus is None else float(lens.defocus),
+                "pupil": pupil_dict(lens.pupil),
+            },
+            "sensor": {
+                "pixel_pitch": sen.pixel_pitch,
+                "pattern": sen.pattern,
+                "wavelengths": tolist(sen.wavelengths),
+                "phi0": tolist(sen.phi0),
+                "response": {"toe": tolist(sen.response.toe), "knee": tolist(sen.response.knee)},
+                "white_balance": tolist(sen.white_balance),
+                "colour_matrix": tolist(sen.colour_matrix),
+            },
+        },
+        "scene": {
+            "object_distance": float(scene.object_distance),
+            "exposure_time": float(scene.exposure_time),
+            "background": tolist(scene.background),
+            "sources": [
+                {"type": "disc", "radius": float(s.radius), "position": tolist(s.position),
+                 "radiance": tolist(s.radiance)}
+                for s in scene.sources
+            ],
+        },
+    }
+    if name:
+        doc = {"name": name, **doc}
+    if grid_options:
+        doc["grid"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in grid_options.items()}
+    return doc
