@@ -93,17 +93,19 @@ def test_bad_files(tmp_path, sens):
     with pytest.raises(ValueError, match=r"bad\.json.*cannot parse JSON"):
         load_spectral_sensitivity(bad)
     doc = json.loads(Path(PATH).read_text())
+
+    def with_data(main):
+        return {**doc, "spectral_data": {**doc["spectral_data"], "data": {"main": main}}}
+
     cases = {
         "nokeys.json": ({"header": {}}, "expected keys"),
         "channels.json": ({**doc, "spectral_data": {**doc["spectral_data"],
                                                     "index": {"main": ["G", "R", "B"]}}},
                           "index.main must be"),
-        "values.json": ({**doc, "spectral_data": {**doc["spectral_data"],
-                                                  "data": {"main": {"380": [1, 2], "385": [1, 2]}}}},
-                        "exactly 3 values"),
-        "nan.json": ({**doc, "spectral_data": {**doc["spectral_data"],
-                                               "data": {"main": {"380": ["x", 1, 2], "385": [1, 2, 3]}}}},
-                     "must be numbers"),
+        "values.json": (with_data({"380": [1, 2], "385": [1, 2]}), "exactly 3 values"),
+        "text.json": (with_data({"380": ["x", 1, 2], "385": [1, 2, 3]}), "must be numbers"),
+        "uneven.json": (with_data({"380": [1, 2, 3], "385": [1, 2, 3], "395": [1, 2, 3]}),
+                        "evenly spaced"),
     }
     for name, (content, msg) in cases.items():
         p = tmp_path / name

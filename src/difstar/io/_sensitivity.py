@@ -25,7 +25,8 @@ def _fail(path: Path, what: str) -> ValueError:
 
 
 def load_spectral_sensitivity(path: str | Path) -> Any:
-    """Read a rawtoaces-data camera JSON file into ``colour.characterisation.RGB_CameraSensitivities``.
+    """Read a rawtoaces-data camera JSON file as
+    ``colour.characterisation.RGB_CameraSensitivities``.
 
     Wavelengths in nm (colour-science's convention), channels labelled red, green, blue,
     named "<manufacturer> <model>". Raises FileNotFoundError for a missing file and
