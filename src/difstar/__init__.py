@@ -20,6 +20,25 @@ from ._psf import SamplingError as SamplingError, psf as psf, sampling_report as
 from ._otf import mtf as mtf, otf as otf
 from ._image import DiscSource as DiscSource, geometric_image as geometric_image
 from ._sensor import Response as Response, response_curve as response_curve
+from ._cfa import bayer_masks as bayer_masks, mosaic as mosaic, white_balance as white_balance
+from ._demosaic import (
+    demosaic as demosaic,
+    demosaic_bilinear as demosaic_bilinear,
+    demosaic_malvar2004 as demosaic_malvar2004,
+)
+from ._colour import (
+    camera_to_srgb as camera_to_srgb,
+    render_srgb as render_srgb,
+    srgb_encode as srgb_encode,
+)
+from ._metrics import (
+    grayscale as grayscale,
+    mse as mse,
+    profile_circle as profile_circle,
+    profile_line as profile_line,
+    ssim as ssim,
+    table1 as table1,
+)
 from ._chain import (
     Camera as Camera,
     Grid as Grid,
@@ -33,5 +52,6 @@ from ._chain import (
     simulate as simulate,
 )
 from ._examples import paper_camera as paper_camera, paper_grid as paper_grid
+from ._sampling import choose_grid as choose_grid
 
 __version__ = "0.1.0"

@@ -10,8 +10,9 @@ Values the paper does not print are assumptions, stated here:
   front of the sensor at infinity focus), circumradius f / (2 N);
 - blade rotation 0 (first vertex on +x);
 - φ0 and the response curves are chosen so the source's core saturates as in the
-  paper's Fig. 6 while the spikes stay in the linear range; white balance [2, 1, 2] as
-  in the paper; colour matrix identity (pass a fitted or file matrix to change it).
+  paper's Fig. 6 while the spikes stay in the linear range, with R and B at half the
+  green response so the paper's white balance [2, 1, 2] renders the white source
+  neutral; colour matrix identity (pass a fitted or file matrix to change it).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ PAPER = {
     "wavelengths": (600e-9, 530e-9, 450e-9),
     "source_diameter": 10.5e-3,
     "object_distance": 1.0,
-    "phi0": (0.12, 0.10, 0.16),
+    "phi0": (0.020, 0.010, 0.022),
     "toe": (0.02, 0.02, 0.02),
     "knee": (40.0, 40.0, 40.0),
     "white_balance": (2.0, 1.0, 2.0),

@@ -43,9 +43,16 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
 
     import difstar
     from difstar._sampling import choose_grid
-    from difstar.io._output import output_dir, write_json, write_png_srgb, write_tiff_raw
+    from difstar.io._output import (
+        check_output_free,
+        output_dir,
+        write_json,
+        write_png_srgb,
+        write_tiff_raw,
+    )
     from difstar.io._scene import scene_from_dict
 
+    check_output_free(out, overwrite=overwrite)
     camera, scene, gopt = scene_from_dict(doc, source=source)
     if crop is not None:
         gopt["crop"] = list(crop)
@@ -65,7 +72,7 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
     t_compile = time.perf_counter() - t0
     _log(f"difstar: compiled in {t_compile:.1f} s; running ...")
     t0 = time.perf_counter()
-    pred = jax.block_until_ready(compiled(camera, scene))
+    pred = jax.block_until_ready(compiled(camera, scene, grid))
     t_run = time.perf_counter() - t0
     _log(f"difstar: ran in {t_run:.2f} s")
     g = pred.geometry

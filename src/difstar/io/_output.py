@@ -22,17 +22,25 @@ class OutputExistsError(FileExistsError):
     pass
 
 
+def check_output_free(dest: str | Path, *, overwrite: bool = False) -> None:
+    """Raise OutputExistsError before any work when ``dest`` would be overwritten."""
+    dest = Path(dest)
+    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())) and not overwrite:
+        raise OutputExistsError(
+            f"output {dest} already exists and is not empty; choose another --out or "
+            "pass --overwrite to replace it."
+        )
+
+
 @contextlib.contextmanager
 def output_dir(dest: str | Path, *, overwrite: bool = False):
     dest = Path(dest)
-    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
-        if not overwrite:
-            raise OutputExistsError(
-                f"output {dest} already exists and is not empty; choose another --out or "
-                "pass --overwrite to replace it."
-            )
+    check_output_free(dest, overwrite=overwrite)
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; results are for sharing
     try:
         yield tmp
     except BaseException:
