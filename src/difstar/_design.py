@@ -1,0 +1,557 @@
+"""Aperture design: image-space objectives, constraints and an optimiser loop.
+
+A design study is four things:
+
+1. **parameters** — any PyTree of arrays (an equinox Module); for irises,
+   :class:`IrisParams` (blade curvature and per-vertex deviations) with the static
+   :class:`IrisFamily` (blade count, open area) that turns them into a pupil;
+2. an **objective** — a function of the parameters that builds the pupil, predicts the
+   image with :func:`difstar.psf` (or :func:`difstar.simulate`) and scores it with the
+   image-space measures here (:func:`spike_energy`, :func:`core_energy`,
+   :func:`spike_length`, :func:`angular_profile`, :func:`bokeh_nonuniformity`,
+   :func:`image_mismatch`);
+3. **constraints** — reparametrisations, not penalties: a fixed open area by setting the
+   circumradius analytically (:func:`difstar.curved_iris_from_area`), bounds (convexity,
+   blade curvature) by a smooth map from unconstrained values (:class:`Box`), the blade
+   count static;
+4. an **optimiser** — an optax gradient transformation (default Adam) or an optimistix
+   minimiser, run by :func:`design`, which returns the history.
+
+Image geometry: PSFs are (H, W) arrays centred on pixel (H//2, W//2); angles in the
+image are measured from the +x axis (columns to the right) towards +y (rows upwards),
+the same convention as the pupil plane, so a straight blade with outward chord normal at
+angle θ throws its spikes along θ and θ + π. Radii are in pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._custom_types import Array, Float
+
+Real = float | int  # beartype does not take an int for a float
+from ._psf import psf
+from ._pupil import AbstractPupil
+from ._pupil_curved import CurvedIris, curved_iris_from_area
+
+# --- image geometry ----------------------------------------------------------------------
+
+
+def _polar(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Radius (pixels) and angle (radians, x right, y up) of every pixel from the centre."""
+    h, w = shape
+    dy = -(np.arange(h) - h // 2)[:, None] * np.ones((1, w))
+    dx = (np.arange(w) - w // 2)[None, :] * np.ones((h, 1))
+    return np.hypot(dx, dy), np.arctan2(dy, dx)
+
+
+def _annulus(shape, core_radius: Real, outer_radius: Real | None) -> np.ndarray:
+    r, _ = _polar(shape)
+    outer = 0.5 * min(shape) - 1 if outer_radius is None else outer_radius
+    return (r >= core_radius) & (r <= outer)
+
+
+def _exact_rings(shape: tuple[int, int]) -> tuple[Array, Array]:
+    """Ring index of every pixel (flattened) grouping pixels at exactly the same distance
+    from the centre (same i² + j²), and each ring's pixel count."""
+    h, w = shape
+    r2 = ((np.arange(h) - h // 2) ** 2)[:, None] + ((np.arange(w) - w // 2) ** 2)[None, :]
+    _, ring = np.unique(r2.ravel(), return_inverse=True)
+    count = np.bincount(ring).astype(float)
+    return jnp.asarray(ring.ravel()), jnp.asarray(count)
+
+
+def wedge_weights(
+    shape: tuple[int, int], directions: Float[Array, " k"], *, half_width: Real,
+    softness: Real | None = None,
+) -> Float[Array, "h w"]:
+    """Smooth indicator (0…1) of the wedges of half-width ``half_width`` (radians)
+    around each direction and its opposite, combined as 1 − Π(1 − wᵢ).
+
+    Smooth in the directions (a tanh edge of width ``softness``, default a quarter of the
+    half-width), so a spike objective is differentiable when the blades rotate.
+    """
+    _, phi = _polar(shape)
+    phi = jnp.asarray(phi)
+    s = 0.25 * half_width if softness is None else softness
+    miss = jnp.ones(shape, dtype=jnp.result_type(directions.dtype, float))
+    for sign in (0.0, math.pi):
+        d = phi[None] - (directions[:, None, None] + sign)
+        d = jnp.abs(jnp.mod(d + math.pi, 2 * math.pi) - math.pi)
+        w = 0.5 * (1 - jnp.tanh((d - half_width) / s))
+        miss = miss * jnp.prod(1 - w, axis=0)
+    return 1 - miss
+
+
+def spike_energy(
+    image: Float[Array, "h w"],
+    directions: Float[Array, " k"],
+    *,
+    core_radius: Real,
+    half_width: Real,
+    outer_radius: Real | None = None,
+    excess: bool = False,
+) -> Float[Array, ""]:
+    """Fraction of the image's energy in the spike wedges outside the core.
+
+    Sums ``image`` × wedge weight over the annulus ``core_radius`` ≤ r ≤ ``outer_radius``
+    (pixels; default just inside the frame, which keeps the corners — where the FFT's
+    wrap-around lands — out) and divides by the total. ``excess=True`` subtracts what an
+    isotropic halo would put in the same wedges, ring by ring (pixels at exactly the same
+    radius), so a
+    rotationally symmetric PSF scores 0 and only the spikes' anisotropy counts.
+    """
+    shape = image.shape
+    mask = jnp.asarray(_annulus(shape, core_radius, outer_radius))
+    w = wedge_weights(shape, directions, half_width=half_width)
+    if excess:
+        ring, count = _exact_rings(shape)
+        mean_w = jax.ops.segment_sum(w.ravel(), ring, count.shape[0]) / count
+        w = w - mean_w[ring].reshape(shape)
+    return jnp.sum(jnp.where(mask, image * w, 0.0)) / jnp.sum(image)
+
+
+def halo_anisotropy(
+    image: Float[Array, "h w"], *, core_radius: Real, outer_radius: Real | None = None,
+) -> Float[Array, ""]:
+    """Energy in spikes whatever their direction: Σ max(I − Ī, 0) over the annulus
+    outside the core, divided by the total, where Ī is the mean over the pixels at exactly
+    the same distance from the centre (same i² + j²).
+
+    The energy that would have to move round its circle to make the halo isotropic: about
+    0 for a rotationally symmetric PSF (4e-4 for a disc pupil sampled at 3.9 µm, f/8,
+    550 nm, against 6e-3 for a 9-blade straight iris). Unlike :func:`spike_energy` it
+    cannot be lowered by turning spikes away from given directions, so it is the safer
+    objective when vertices move freely."""
+    ring, count = _exact_rings(image.shape)
+    mean = jax.ops.segment_sum(image.ravel(), ring, count.shape[0]) / count
+    dev = jnp.maximum(image.ravel() - mean[ring], 0.0)
+    mask = _annulus(image.shape, core_radius, outer_radius).ravel()
+    return jnp.sum(jnp.where(jnp.asarray(mask), dev, 0.0)) / jnp.sum(image)
+
+
+def core_energy(image: Float[Array, "h w"], *, core_radius: Real) -> Float[Array, ""]:
+    """Fraction of the image's energy within ``core_radius`` pixels of the centre."""
+    r, _ = _polar(image.shape)
+    return jnp.sum(jnp.where(jnp.asarray(r <= core_radius), image, 0.0)) / jnp.sum(image)
+
+
+def angular_profile(
+    image: Float[Array, "h w"], *, core_radius: Real, outer_radius: Real | None = None,
+    bins: int = 360,
+) -> Float[Array, " bins"]:
+    """Energy fraction per angular bin (bin j covers [2πj/bins, 2π(j+1)/bins) from +x
+    towards +y) in the annulus outside the core; for objectives on spike angles."""
+    mask = _annulus(image.shape, core_radius, outer_radius)
+    _, phi = _polar(image.shape)
+    idx = np.floor(np.mod(phi, 2 * math.pi) / (2 * math.pi) * bins).astype(int) % bins
+    idx = np.where(mask, idx, bins)  # outside the annulus: a discarded extra bin
+    e = jax.ops.segment_sum(image.ravel(), jnp.asarray(idx.ravel()), bins + 1)
+    return e[:bins] / jnp.sum(image)
+
+
+def spike_profile(
+    image: Float[Array, "h w"], directions: Float[Array, " k"], *, half_width: Real,
+) -> Float[Array, " rings"]:
+    """Mean intensity inside the spike wedges minus the ring's mean, per one-pixel ring
+    (ring j at radius j pixels), relative to the peak: the spikes' radial profile."""
+    r, _ = _polar(image.shape)
+    ring = np.round(r).astype(int).ravel()
+    nring = int(ring.max()) + 1
+    ring_j = jnp.asarray(ring)
+    w = wedge_weights(image.shape, directions, half_width=half_width).ravel()
+    flat = image.ravel()
+    count = jnp.asarray(np.bincount(ring, minlength=nring).astype(float))
+    wsum = jax.ops.segment_sum(w, ring_j, nring)
+    in_wedge = jax.ops.segment_sum(flat * w, ring_j, nring) / jnp.maximum(wsum, 1e-12)
+    ring_mean = jax.ops.segment_sum(flat, ring_j, nring) / count
+    return (in_wedge - ring_mean) / jnp.max(image)
+
+
+def spike_length(
+    image: Float[Array, "h w"], directions: Float[Array, " k"], *, half_width: Real,
+    level: Real = 1e-5, core_radius: Real = 0.0, softness: Real = 0.1,
+) -> Float[Array, ""]:
+    """How far the spikes reach (pixels): the number of one-pixel rings outside
+    ``core_radius`` (up to the inscribed circle) where :func:`spike_profile` exceeds
+    ``level``, counted smoothly (a sigmoid in log10 of width ``softness`` decades)."""
+    prof = spike_profile(image, directions, half_width=half_width)
+    radii = np.arange(prof.shape[0])
+    use = jnp.asarray((radii >= core_radius) & (radii <= 0.5 * min(image.shape) - 1))
+    lg = jnp.log10(jnp.maximum(prof, 1e-30))
+    on = jax.nn.sigmoid((lg - math.log10(level)) / softness)
+    return jnp.sum(jnp.where(use, on, 0.0))
+
+
+def bokeh_nonuniformity(
+    image: Float[Array, "h w"], *, radius: Real, inner: Real = 0.8, measure: str = "cv",
+) -> Float[Array, ""]:
+    """How uneven a defocused highlight is inside its geometric disc.
+
+    ``radius``: the geometric blur radius in pixels (:meth:`PSFSetup.blur_radius`); only
+    pixels within ``inner`` × radius count, which leaves out the edge's own fall-off.
+    ``measure="cv"``: the coefficient of variation (standard deviation / mean) there;
+    ``"tv"``: the mean absolute difference between neighbouring pixels / the mean
+    (total variation); ``"peak"``: the L⁸ norm over the mean, less 1 (a smooth stand-in
+    for peak / mean, which picks out the bright centre a round pupil gives). 0 for a
+    perfectly flat disc.
+    """
+    r, _ = _polar(image.shape)
+    m = r <= inner * radius
+    if m.sum() < 4:
+        raise ValueError(
+            f"bokeh_nonuniformity: only {int(m.sum())} pixels inside {inner} × radius "
+            f"{radius:.3g} px; defocus more or use a smaller pixel pitch."
+        )
+    mj = jnp.asarray(m)
+    k = float(m.sum())
+    mean = jnp.sum(jnp.where(mj, image, 0.0)) / k
+    if measure == "cv":
+        var = jnp.sum(jnp.where(mj, (image - mean) ** 2, 0.0)) / k
+        return jnp.sqrt(var + 1e-30 * mean * mean) / mean
+    if measure == "tv":
+        mx = jnp.asarray(m[:, 1:] & m[:, :-1])
+        my = jnp.asarray(m[1:, :] & m[:-1, :])
+        tv = (jnp.sum(jnp.where(mx, jnp.abs(image[:, 1:] - image[:, :-1]), 0.0))
+              + jnp.sum(jnp.where(my, jnp.abs(image[1:, :] - image[:-1, :]), 0.0)))
+        return tv / (float(mx.sum() + my.sum()) * mean)
+    if measure == "peak":
+        p = 8.0
+        lp = (jnp.sum(jnp.where(mj, (image / mean) ** p, 0.0)) / k) ** (1 / p)
+        return lp - 1.0
+    raise ValueError(f"measure must be 'cv', 'tv' or 'peak'; got {measure!r}.")
+
+
+def image_mismatch(
+    image: Float[Array, "*shape"], target: Float[Array, "*shape"], *, log: bool = False,
+    floor: Real = 1e-7, weights: Float[Array, "*shape"] | None = None,
+) -> Float[Array, ""]:
+    """Mean squared difference to a target image (for matching a target starburst).
+
+    ``log=True`` compares log10(max(·, floor × max(target))): spikes 10⁻³…10⁻⁶ of the
+    peak then count as much as the core. ``weights`` multiplies each pixel's term.
+    """
+    if log:
+        lo = floor * jnp.max(target)
+        image = jnp.log10(jnp.maximum(image, lo))
+        target = jnp.log10(jnp.maximum(target, lo))
+    d2 = (image - target) ** 2
+    if weights is not None:
+        return jnp.sum(weights * d2) / jnp.sum(weights)
+    return jnp.mean(d2)
+
+
+# --- PSFs for a design ---------------------------------------------------------------------
+
+
+class PSFSetup(eqx.Module):
+    """How a design's PSFs are predicted (monochromatic, through :func:`difstar.psf`).
+
+    wavelength: metres. z_focus: exit pupil to the in-focus image, metres (the focal
+    length for a lens focused at infinity with pupil magnification 1). pixel_pitch:
+    metres. shape: (H, W) pixels. oversample: sub-samples per pixel (rule 1 of DESIGN.md:
+    pixel_pitch / oversample ≤ λ N / 2). defocus: Δz of the defocused-highlight (bokeh)
+    PSF, metres; defocus_shape: its (H, W) (the geometric blur must fit inside).
+    All static: they fix shapes or are plain numbers of the study.
+    """
+
+    wavelength: Real = eqx.field(static=True)
+    z_focus: Real = eqx.field(static=True)
+    pixel_pitch: Real = eqx.field(static=True)
+    shape: tuple[int, int] = eqx.field(static=True)
+    oversample: int = eqx.field(static=True, default=1)
+    defocus: Real = eqx.field(static=True, default=0.0)
+    defocus_shape: tuple[int, int] | None = eqx.field(static=True, default=None)
+
+    def focused(self, pupil: AbstractPupil) -> Float[Array, "h w"]:
+        """The in-focus PSF (unit sum)."""
+        return psf(
+            pupil, wavelength=self.wavelength, z_image=self.z_focus, defocus=0.0,
+            pixel_pitch=self.pixel_pitch, shape=self.shape, oversample=self.oversample,
+        )
+
+    def defocused(self, pupil: AbstractPupil) -> Float[Array, "h w"]:
+        """The PSF with the sensor ``defocus`` behind the in-focus image (unit sum)."""
+        if self.defocus == 0:
+            raise ValueError("PSFSetup.defocus is 0; give a defocus (metres) for bokeh.")
+        return psf(
+            pupil, wavelength=self.wavelength, z_image=self.z_focus + self.defocus,
+            defocus=self.defocus, pixel_pitch=self.pixel_pitch,
+            shape=self.defocus_shape or self.shape, oversample=self.oversample,
+        )
+
+    def blur_radius(self, area: Real) -> float:
+        """Geometric blur radius (pixels) of a pupil of open ``area`` (m²), taken as the
+        area-equivalent disc: r_eq Δz / z_focus / pixel_pitch."""
+        return math.sqrt(area / math.pi) * abs(self.defocus) / self.z_focus / self.pixel_pitch
+
+    def airy_scale(self, area: Real) -> float:
+        """λ N in pixels for the area-equivalent f-number N = z_focus / (2 r_eq)."""
+        n_w = self.z_focus / (2 * math.sqrt(area / math.pi))
+        return self.wavelength * n_w / self.pixel_pitch
+
+
+# --- iris parameters and constraints -------------------------------------------------------
+
+
+class IrisParams(eqx.Module):
+    """What a curved-iris design varies: one blade curvature (all blades are cut alike),
+    and each vertex's relative radial and angular (radians) deviation."""
+
+    curvature: Float[Array, ""]
+    radial: Float[Array, " blades"]
+    angular: Float[Array, " blades"]
+
+
+class IrisFamily(eqx.Module):
+    """The fixed part of an iris design: blade count ``n``, open ``area`` (m², the fixed
+    exposure), ``rotation`` (radians) and arc ``segments``. :meth:`pupil` builds a
+    :class:`CurvedIris` whose circumradius gives exactly this area."""
+
+    n: int = eqx.field(static=True)
+    area: Real = eqx.field(static=True)
+    rotation: Real = eqx.field(static=True, default=0.0)
+    segments: int = eqx.field(static=True, default=16)
+
+    def params(self, curvature=0.0, radial=0.0, angular=0.0) -> IrisParams:
+        dt = jnp.result_type(float)
+        return IrisParams(
+            jnp.asarray(curvature, dt),
+            jnp.broadcast_to(jnp.asarray(radial, dt), (self.n,)),
+            jnp.broadcast_to(jnp.asarray(angular, dt), (self.n,)),
+        )
+
+    def pupil(self, p: IrisParams) -> CurvedIris:
+        return curved_iris_from_area(
+            self.n, self.area, p.curvature, radial=p.radial, angular=p.angular,
+            rotation=self.rotation, segments=self.segments,
+        )
+
+    def bounds(
+        self, *, curvature: tuple[Real, Real] = (0.0, 0.0), radial: Real = 0.0,
+        angular: Real = 0.0, convex: bool = True,
+    ) -> Box:
+        """A :class:`Box`: curvature in [lo, hi], |radial| ≤ ``radial``, |angular| ≤
+        ``angular`` (radians). A range of zero width fixes that parameter.
+
+        ``convex=True`` checks that every iris inside the box is convex, with the
+        conservative bound of :func:`convexity_bound`, and raises if not.
+        """
+        lo_c, hi_c = (float(c) for c in curvature)
+        if convex:
+            if lo_c < 0:
+                raise ValueError("IrisFamily.bounds: negative curvature (concave blades) "
+                                 "is not convex; use curvature >= 0 or convex=False.")
+            m = convexity_bound(self.n, max_curvature=hi_c, max_radial=radial,
+                                max_angular=angular)
+            if m < 0:
+                raise ValueError(
+                    f"IrisFamily.bounds: these bounds allow non-convex irises (worst-case "
+                    f"turning {m:.3g} rad < 0); reduce the curvature or vertex bounds, or "
+                    "pass convex=False."
+                )
+        return Box(self.params(lo_c, -radial, -angular), self.params(hi_c, radial, angular))
+
+
+def convexity_bound(n: int, *, max_curvature: Real, max_radial: Real,
+                    max_angular: Real) -> float:
+    """A lower bound (radians) on :meth:`CurvedIris.convexity_margin` over all irises
+    with curvature in [0, max_curvature], |radial| ≤ max_radial, |angular| ≤ max_angular.
+
+    Each vertex moves at most ε R from its regular place, ε = ρ + 2 sin(δ/2)(1 + ρ); a
+    chord of nominal length L₀ = 2R sin(π/n) then turns at most asin(2ε R / L₀) and
+    lengthens to at most L₀ + 2ε R, so the turning at a vertex is at least
+    2π/n − 2 asin(ε / sin(π/n)) − 2 asin(c (sin(π/n) + ε)).
+    """
+    s = math.sin(math.pi / n)
+    eps = max_radial + 2 * math.sin(max_angular / 2) * (1 + max_radial)
+    if eps >= s or max_curvature * (s + eps) >= 1:
+        return -math.inf
+    return 2 * math.pi / n - 2 * math.asin(eps / s) - 2 * math.asin(max_curvature * (s + eps))
+
+
+class Box(eqx.Module):
+    """Bounds as a reparametrisation: params = lower + (upper − lower) σ(u), u free.
+
+    ``lower`` and ``upper`` are PyTrees shaped like the parameters. Where they are equal
+    the parameter is fixed (its gradient is zero). Starting values on a bound are moved
+    inside by ``margin`` × the range (a logistic map cannot reach its ends).
+    """
+
+    lower: Any
+    upper: Any
+    margin: Real = eqx.field(static=True, default=1e-3)
+
+    def constrain(self, u):
+        return jax.tree.map(lambda lo, hi, x: lo + (hi - lo) * jax.nn.sigmoid(x),
+                            self.lower, self.upper, u)
+
+    def unconstrain(self, params):
+        def inv(lo, hi, p):
+            span = hi - lo
+            fixed = span == 0
+            t = (p - lo) / jnp.where(fixed, 1.0, span)
+            t = jnp.clip(t, self.margin, 1 - self.margin)
+            return jnp.where(fixed, 0.0, jnp.log(t) - jnp.log1p(-t))
+
+        return jax.tree.map(inv, self.lower, self.upper, params)
+
+
+# --- the optimiser loop ---------------------------------------------------------------------
+
+
+class DesignResult(eqx.Module):
+    """What :func:`design` returns.
+
+    params: the final parameters; best_params / best_value: the best seen;
+    history: ``{"value": (steps + 1,), "aux": {name: (steps + 1,)}, "params": [PyTree]}``
+    — entry i is at the parameters after i steps (for optimistix, its i-th iterate).
+    """
+
+    params: Any
+    best_params: Any
+    best_value: Float[Array, ""]
+    history: dict
+
+
+def _split_objective(objective):
+    def fn(params):
+        out = objective(params)
+        if isinstance(out, tuple):
+            val, aux = out
+        else:
+            val, aux = out, {}
+        return val, aux
+
+    return fn
+
+
+def design(
+    objective: Callable,
+    params0,
+    *,
+    constraints: Box | None = None,
+    optimiser=None,
+    steps: int = 100,
+    callback: Callable | None = None,
+) -> DesignResult:
+    """Minimise ``objective(params)`` from ``params0``.
+
+    objective: params → scalar, or → (scalar, dict of scalars to record).
+    constraints: a :class:`Box` (or any object with ``constrain``/``unconstrain``); the
+        optimiser then works on the unconstrained values and the objective always sees
+        feasible parameters. Fixed area is not a bound: build the pupil with
+        :meth:`IrisFamily.pupil` inside the objective.
+    optimiser: an ``optax.GradientTransformation`` (default ``optax.adam(0.1)``, suited
+        to the unconstrained values of a Box) or an optimistix minimiser (e.g.
+        ``optx.BFGS(rtol=1e-6, atol=1e-8)``), stepped one iteration at a time.
+    steps: iterations. callback(step, params, value, aux): called after every step with
+        concrete values; returning True stops early.
+
+    The step is compiled once (``eqx.filter_jit``); objectives must be jittable.
+    """
+    fn = _split_objective(objective)
+    box = constraints
+
+    def loss(u):
+        p = box.constrain(u) if box is not None else u
+        return fn(p)
+
+    to_params = (lambda u: box.constrain(u)) if box is not None else (lambda u: u)
+    u = box.unconstrain(params0) if box is not None else params0
+
+    import optimistix as optx
+
+    if optimiser is None:
+        import optax
+
+        optimiser = optax.adam(0.1)
+
+    values, auxes, plist = [], [], []
+
+    def record(u_, val, aux):
+        values.append(float(val))
+        auxes.append({k: float(v) for k, v in aux.items()})
+        plist.append(jax.device_get(to_params(u_)))
+
+    if isinstance(optimiser, optx.AbstractMinimiser):
+        u = _run_optimistix(loss, u, optimiser, steps, record, callback, to_params)
+    else:
+        u = _run_optax(loss, u, optimiser, steps, record, callback, to_params)
+    vals = np.asarray(values)
+    best = int(np.nanargmin(vals))
+    keys = auxes[0].keys() if auxes else ()
+    history = {
+        "value": vals,
+        "aux": {k: np.asarray([a[k] for a in auxes]) for k in keys},
+        "params": plist,
+    }
+    return DesignResult(plist[-1], plist[best], jnp.asarray(vals[best]), history)
+
+
+def _run_optax(loss, u, optimiser, steps, record, callback, to_params):
+    import optax
+
+    opt_state = optimiser.init(eqx.filter(u, eqx.is_inexact_array))
+
+    @eqx.filter_jit
+    def step(u_, state):
+        (val, aux), g = eqx.filter_value_and_grad(loss, has_aux=True)(u_)
+        updates, state = optimiser.update(g, state, u_)
+        return optax.apply_updates(u_, updates), state, val, aux
+
+    evaluate = eqx.filter_jit(loss)
+    for i in range(steps):
+        u_new, opt_state, val, aux = step(u, opt_state)
+        record(u, val, aux)
+        if callback is not None and callback(i, to_params(u), float(val), aux):
+            u = u_new
+            break
+        u = u_new
+    val, aux = evaluate(u)
+    record(u, val, aux)
+    return u
+
+
+def _run_optimistix(loss, u, solver, steps, record, callback, to_params):
+    def fn(y, args):
+        val, aux = loss(y)
+        return val, (val, aux)
+
+    f_struct, aux_struct = jax.eval_shape(fn, u, None)
+    tags = frozenset()
+    state = eqx.filter_jit(solver.init)(fn, u, None, {}, f_struct, aux_struct, tags)
+    evaluate = eqx.filter_jit(loss)
+    val, aux = evaluate(u)
+    record(u, val, aux)
+
+    @eqx.filter_jit
+    def step(y, st):
+        y, st, _ = solver.step(fn, y, None, {}, st, tags)
+        done, _ = solver.terminate(fn, y, None, {}, st, tags)
+        return y, st, done
+
+    for i in range(steps):
+        u, state, done = step(u, state)
+        val, aux = evaluate(u)
+        record(u, val, aux)
+        if callback is not None and callback(i, to_params(u), float(val), aux):
+            break
+        if bool(done):
+            break
+    return u
+
+
+__all__ = [
+    "PSFSetup", "IrisParams", "IrisFamily", "Box", "DesignResult", "design",
+    "convexity_bound", "wedge_weights", "spike_energy", "halo_anisotropy", "core_energy", "angular_profile",
+    "spike_profile", "spike_length", "bokeh_nonuniformity", "image_mismatch",
+]
+
