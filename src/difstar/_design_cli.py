@@ -1,0 +1,300 @@
+"""``difstar design``: the worked aperture-design study (outer layer: files, plots, log).
+
+For an n-blade iris at f/8 and a fixed open area (that of an f/8 disc), how far can blade
+curvature and vertex placement cut the spikes, and what does that cost in the smoothness
+of a defocused highlight (bokeh)?
+
+Setup (stated in the output): a 50 mm lens focused at infinity, exit pupil at 50 mm,
+550 nm light, the paper's 3.917 µm pixels. At f/8 the PSF's intensity bandwidth needs a
+grid pitch ≤ λN/2 = 2.2 µm (DESIGN.md rule 1), so the PSF is computed with 2× oversampling
+(1.96 µm) and integrated over each pixel. The focused PSF is 96 × 96 pixels (64 with
+``--quick``); the defocused one puts the sensor Δz behind focus so that the geometric blur
+is 80 pixels across (40), about 9 waves of defocus, on a 128 (64) pixel grid.
+
+Designs: straight blades; curved blades (the curvature optimised within
+[0, --max-curvature]); curved blades with the vertices also moved (|radial|, |angular| ≤
+--vertex-bound, convexity guaranteed); the disc of the same area for reference. The
+objective is the halo anisotropy (spike energy whatever the direction) plus
+--bokeh-weight × the bokeh coefficient of variation.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+STUDY_DEFAULTS = {
+    "focal_length": 50e-3,
+    "wavelength": 550e-9,
+    "pixel_pitch": 3.917e-6,
+    "oversample": 2,
+}
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def study_setup(*, blades: int = 9, f_number: float = 8.0, quick: bool = False):
+    """(IrisFamily, PSFSetup, measure options) for the worked study."""
+    from difstar._design import IrisFamily, PSFSetup
+
+    f = STUDY_DEFAULTS["focal_length"]
+    area = math.pi * (f / (2 * f_number)) ** 2
+    size, blur, dsize = (64, 40, 64) if quick else (96, 80, 128)
+    p = STUDY_DEFAULTS["pixel_pitch"]
+    dz = blur * p * f / (f / f_number)  # blur diameter = D Δz / z  (D = f / N)
+    setup = PSFSetup(
+        wavelength=STUDY_DEFAULTS["wavelength"], z_focus=f, pixel_pitch=p,
+        shape=(size, size), oversample=STUDY_DEFAULTS["oversample"], defocus=dz,
+        defocus_shape=(dsize, dsize),
+    )
+    family = IrisFamily(blades, area)
+    opts = {"core_radius": 4.0, "half_width": math.pi / (4 * blades)}
+    return family, setup, opts
+
+
+def measure(family, setup, params, opts) -> dict:
+    """Every reported measure of one design (concrete floats)."""
+    import jax.numpy as jnp
+
+    from difstar._design import (
+        bokeh_nonuniformity,
+        core_energy,
+        halo_anisotropy,
+        spike_energy,
+        spike_length,
+    )
+
+    pu = family.pupil(params)
+    img = setup.focused(pu)
+    bok = setup.defocused(pu)
+    d = pu.chord_normal_angles()
+    rb = setup.blur_radius(family.area)
+    rc, hw = opts["core_radius"], opts["half_width"]
+    return {
+        "curvature": float(params.curvature),
+        "max_abs_radial": float(jnp.max(jnp.abs(params.radial))),
+        "max_abs_angular_rad": float(jnp.max(jnp.abs(params.angular))),
+        "halo_anisotropy": float(halo_anisotropy(img, core_radius=rc)),
+        "spike_wedge_energy": float(spike_energy(img, d, core_radius=rc, half_width=hw)),
+        "spike_wedge_excess": float(
+            spike_energy(img, d, core_radius=rc, half_width=hw, excess=True)),
+        "spike_length_px": float(spike_length(img, d, half_width=hw, core_radius=rc)),
+        "core_energy": float(core_energy(img, core_radius=rc)),
+        "bokeh_cv": float(bokeh_nonuniformity(bok, radius=rb)),
+        "bokeh_peak": float(bokeh_nonuniformity(bok, radius=rb, measure="peak")),
+        "area_rel_error": float(pu.area() / family.area - 1),
+        "convexity_margin_rad": float(pu.convexity_margin()),
+        "circumradius_m": float(pu.circumradius),
+    }
+
+
+def iris_study(
+    *, blades: int = 9, f_number: float = 8.0, quick: bool = False,
+    steps: int | None = None, max_curvature: float = 0.6, vertex_bound: float = 0.015,
+    bokeh_weight: float = 0.0, learning_rate: float = 0.1, log=_log,
+) -> dict:
+    """Run the worked study; returns the rows, histories, PSFs and pupils (no files)."""
+    import numpy as np
+    import optax
+
+    from difstar._design import bokeh_nonuniformity, design, halo_anisotropy
+
+    family, setup, opts = study_setup(blades=blades, f_number=f_number, quick=quick)
+    steps = (12 if quick else 60) if steps is None else int(steps)
+    rb = setup.blur_radius(family.area)
+
+    def objective(p):
+        pu = family.pupil(p)
+        value = halo_anisotropy(setup.focused(pu), core_radius=opts["core_radius"])
+        aux = {"halo_anisotropy": value}
+        if bokeh_weight:
+            b = bokeh_nonuniformity(setup.defocused(pu), radius=rb)
+            aux["bokeh_cv"] = b
+            value = value + bokeh_weight * b
+        return value, aux
+
+    designs = {"straight": family.params(0.0)}
+    histories = {}
+    t0 = time.perf_counter()
+    box = family.bounds(curvature=(0.0, max_curvature))
+    log(f"difstar design: optimising the curvature ({steps} steps) ...")
+    res = design(objective, family.params(0.5 * max_curvature), constraints=box,
+                 optimiser=optax.adam(learning_rate), steps=steps)
+    designs["curved"] = res.best_params
+    histories["curved"] = res.history["value"]
+    box = family.bounds(curvature=(0.0, max_curvature), radial=vertex_bound,
+                        angular=vertex_bound)
+    log(f"difstar design: optimising curvature and vertices ({steps} steps) ...")
+    start = family.params(res.best_params.curvature, radial=0.0, angular=0.0)
+    # start off the symmetric point, whose gradient in the vertices vanishes by symmetry
+    k = np.arange(blades)
+    start = family.params(
+        start.curvature, radial=0.1 * vertex_bound * np.sin(2.3 * k),
+        angular=0.1 * vertex_bound * np.cos(1.7 * k),
+    )
+    res2 = design(objective, start, constraints=box, optimiser=optax.adam(learning_rate),
+                  steps=steps)
+    designs["curved+vertices"] = res2.best_params
+    histories["curved+vertices"] = res2.history["value"]
+    designs["disc (reference)"] = family.params(1.0)
+    t_opt = time.perf_counter() - t0
+    rows = {}
+    psfs = {}
+    outlines = {}
+    for name, p in designs.items():
+        rows[name] = measure(family, setup, p, opts)
+        pu = family.pupil(p)
+        psfs[name] = (np.asarray(setup.focused(pu)), np.asarray(setup.defocused(pu)))
+        outlines[name] = np.asarray(pu.outline())
+    return {
+        "config": {
+            "blades": blades, "f_number": f_number, "open_area_m2": family.area,
+            "focal_length_m": setup.z_focus, "wavelength_m": setup.wavelength,
+            "pixel_pitch_m": setup.pixel_pitch, "oversample": setup.oversample,
+            "focused_shape": list(setup.shape), "defocused_shape": list(setup.defocus_shape),
+            "defocus_m": setup.defocus, "blur_diameter_px": 2 * rb,
+            "airy_scale_px": setup.airy_scale(family.area), "steps": steps,
+            "max_curvature": max_curvature, "vertex_bound": vertex_bound,
+            "bokeh_weight": bokeh_weight, "learning_rate": learning_rate, **opts,
+            "quick": quick,
+        },
+        "rows": rows,
+        "params": {k: {"curvature": float(v.curvature), "radial": np.asarray(v.radial),
+                       "angular": np.asarray(v.angular)} for k, v in designs.items()},
+        "histories": histories,
+        "psfs": psfs,
+        "outlines": outlines,
+        "optimise_s": t_opt,
+    }
+
+
+COLUMNS = (
+    ("halo_anisotropy", "halo anisotropy", "{:.3e}"),
+    ("spike_wedge_energy", "wedge energy", "{:.4f}"),
+    ("spike_wedge_excess", "wedge excess", "{:.2e}"),
+    ("core_energy", "core energy", "{:.4f}"),
+    ("bokeh_cv", "bokeh CV", "{:.4f}"),
+    ("bokeh_peak", "bokeh peak", "{:.4f}"),
+    ("curvature", "curvature", "{:.3f}"),
+    ("max_abs_radial", "max abs radial", "{:.4f}"),
+    ("area_rel_error", "area rel. err.", "{:.1e}"),
+    ("convexity_margin_rad", "convexity margin", "{:.3f}"),
+)
+
+
+def table_markdown(rows: dict) -> str:
+    head = "| design | " + " | ".join(c[1] for c in COLUMNS) + " |"
+    sep = "|---|" + "---|" * len(COLUMNS)
+    lines = [head, sep]
+    for name, r in rows.items():
+        lines.append(f"| {name} | " + " | ".join(f.format(r[k]) for k, _, f in COLUMNS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_study(result: dict, path_prefix: Path) -> list[str]:
+    """psfs.png (focused, log scale), bokeh.png (defocused, linear), pupils.png,
+    history.png. Returns the file names."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    names = list(result["psfs"])
+    files = []
+    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.4))
+    for ax, name in zip(axes, names):
+        p = result["psfs"][name][0]
+        ax.imshow(np.log10(np.maximum(p / p.max(), 1e-8)), vmin=-7, vmax=0, cmap="magma")
+        ax.set_title(f"{name}\naniso {result['rows'][name]['halo_anisotropy']:.2e}", fontsize=9)
+        ax.axis("off")
+    fig.suptitle("focused PSF, log10 (1e-7 … peak)")
+    fig.tight_layout()
+    fig.savefig(path_prefix / "psfs.png", dpi=110)
+    plt.close(fig)
+    files.append("psfs.png")
+    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.4))
+    for ax, name in zip(axes, names):
+        d = result["psfs"][name][1]
+        ax.imshow(d / d.max(), cmap="gray")
+        ax.set_title(f"{name}\nCV {result['rows'][name]['bokeh_cv']:.4f}", fontsize=9)
+        ax.axis("off")
+    fig.suptitle("defocused highlight (bokeh), linear")
+    fig.tight_layout()
+    fig.savefig(path_prefix / "bokeh.png", dpi=110)
+    plt.close(fig)
+    files.append("bokeh.png")
+    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    for name in names:
+        o = result["outlines"][name] * 1e3
+        o = np.vstack([o, o[:1]])
+        ax.plot(o[:, 0], o[:, 1], lw=1, label=name)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.legend(fontsize=8)
+    ax.set_title("exit-pupil outlines (same open area)")
+    fig.tight_layout()
+    fig.savefig(path_prefix / "pupils.png", dpi=110)
+    plt.close(fig)
+    files.append("pupils.png")
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for name, h in result["histories"].items():
+        ax.plot(h, label=name)
+    ax.set_xlabel("step")
+    ax.set_ylabel("objective")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path_prefix / "history.png", dpi=110)
+    plt.close(fig)
+    files.append("history.png")
+    return files
+
+
+def _cmd_design(a) -> int:
+    from difstar.io._output import output_dir, write_json
+
+    if a.blades < 3:
+        raise ValueError(f"--blades must be >= 3; got {a.blades}.")
+    t0 = time.perf_counter()
+    result = iris_study(
+        blades=a.blades, f_number=a.f_number, quick=a.quick, steps=a.steps,
+        max_curvature=a.max_curvature, vertex_bound=a.vertex_bound,
+        bokeh_weight=a.bokeh_weight,
+    )
+    wall = time.perf_counter() - t0
+    md = table_markdown(result["rows"])
+    with output_dir(Path(a.out), overwrite=a.overwrite) as tmp:
+        (tmp / "table.md").write_text(md)
+        doc = {k: result[k] for k in ("config", "rows", "params", "histories")}
+        doc["timing_s"] = {"optimise": result["optimise_s"], "total": wall}
+        write_json(tmp / "study.json", doc)
+        plot_study(result, tmp)
+    sys.stdout.write(md)
+    _log(f"difstar design: {wall:.1f} s; wrote {a.out}/ (table.md, study.json, psfs.png, "
+         "bokeh.png, pupils.png, history.png)")
+    return 0
+
+
+def register(subparsers, name: str) -> None:
+    p = subparsers.add_parser(
+        name, help="aperture design study: spikes vs bokeh for curved iris blades",
+        description=__doc__.split("\n\n")[1],
+    )
+    p.add_argument("--out", required=True, help="output directory (written whole or not at all)")
+    p.add_argument("--blades", type=int, default=9, help="blade count (default 9)")
+    p.add_argument("--f-number", type=float, default=8.0, help="f-number of the open area")
+    p.add_argument("--quick", action="store_true", help="small grids and 12 steps (CI)")
+    p.add_argument("--steps", type=int, help="optimiser steps per design (default 60)")
+    p.add_argument("--max-curvature", type=float, default=0.6,
+                   help="blade curvature bound, relative to the circumradius (1 = circle)")
+    p.add_argument("--vertex-bound", type=float, default=0.015,
+                   help="bound on each vertex's relative radial and angular (rad) deviation")
+    p.add_argument("--bokeh-weight", type=float, default=0.0,
+                   help="weight of the bokeh CV in the objective (0: spikes only)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    p.set_defaults(func=_cmd_design)
