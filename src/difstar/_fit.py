@@ -1,0 +1,573 @@
+"""Inverse characterization: fit optics, exposure and response curves to RAW mosaics.
+
+Pure layer under ``difstar fit``: no files, no printing. A :class:`FitModel` holds what
+is fixed (the camera's known values, the configurations' geometry and grids, the
+captures' exposure times and regions) and, for every parameter, whether it is free, its
+start value and its bounds. Free parameters live in one flat unconstrained vector ``u``;
+each element maps to its physical value through ``lo + (hi − lo)·sigmoid(u)``, so every
+value the solver tries is inside its bounds and all ``u`` are O(1) (the Levenberg–
+Marquardt damping is isotropic in ``u``, so this also balances the parameters' scales).
+
+The residuals are the RAW mosaic itself, ``(ζ_pred − ζ_obs) / σ`` with σ from a
+Poisson–Gaussian noise model and weight 0 on saturated pixels; the prediction is
+``difstar.simulate`` and nothing lower. Captures of one configuration (one focus
+setting: an exposure bracket) share one PSF: ``simulate`` is vmapped over the exposure
+time only, and JAX keeps the PSF computation unbatched.
+
+Parameters (name → shape, unit):
+
+- ``circumradius`` (), m — exit-pupil circumradius of the regular n-gon;
+- ``rotation`` (), rad — angle of the first vertex (a regular n-gon is only defined
+  modulo 2π/n; :func:`wrap_rotation` compares angles accordingly);
+- ``vertex_radial`` (n,), fraction of the circumradius, and ``vertex_angular`` (n,),
+  rad — per-vertex deviations from the regular polygon, mean removed (the mean is the
+  circumradius and the rotation); with both free the vertices are free;
+- ``defocus/<config>`` (), m — Δz of each configuration (absent: Δz from geometry);
+- ``source_radius`` (), m in the object plane;
+- ``source_offset/<config>`` (2,), pixels (row, col) — sub-pixel correction to the
+  rough source position given for the captures of that configuration;
+- ``phi0`` (3,), s; ``toe`` (3,); ``knee`` (3,) — exposure scale and response curve
+  per channel (R, G, B), see ``_sensor.py``;
+- ``background`` (3,), relative radiance added to the image;
+- ``exposure_scale/<capture>`` () — multiplies the capture's nominal exposure time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+
+from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, simulate
+from ._image import DiscSource
+from ._pupil import Polygon, RegularPolygon
+from ._sensor import Response, response_curve
+
+SHARED = ("circumradius", "rotation", "vertex_radial", "vertex_angular", "source_radius",
+          "phi0", "toe", "knee", "background")
+UNITS = {
+    "circumradius": "m", "rotation": "rad", "vertex_radial": "1", "vertex_angular": "rad",
+    "defocus": "m", "source_radius": "m", "source_offset": "px", "phi0": "s", "toe": "1",
+    "knee": "1", "background": "1", "exposure_scale": "1",
+}
+
+
+def base_name(name: str) -> str:
+    return name.split("/", 1)[0]
+
+
+def param_shape(name: str, n_blades: int) -> tuple[int, ...]:
+    b = base_name(name)
+    if b in ("vertex_radial", "vertex_angular"):
+        return (n_blades,)
+    if b in ("phi0", "toe", "knee", "background"):
+        return (3,)
+    if b == "source_offset":
+        return (2,)
+    if b in ("circumradius", "rotation", "defocus", "source_radius", "exposure_scale"):
+        return ()
+    raise ValueError(f"unknown fit parameter {name!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamSpec:
+    """One parameter block: ``start`` (and, when free, ``lo`` < ``hi``) broadcast to
+    ``shape``; SI units (see module docstring)."""
+
+    name: str
+    shape: tuple[int, ...]
+    free: bool
+    start: Any  # array-like, broadcast to ``shape`` (stored as np.ndarray)
+    lo: Any = None
+    hi: Any = None
+
+    def __post_init__(self):
+        s = np.broadcast_to(np.asarray(self.start, float), self.shape).copy()
+        object.__setattr__(self, "start", s)
+        if self.free:
+            if self.lo is None or self.hi is None:
+                raise ValueError(f"parameter {self.name}: a free parameter needs bounds")
+            lo = np.broadcast_to(np.asarray(self.lo, float), self.shape).copy()
+            hi = np.broadcast_to(np.asarray(self.hi, float), self.shape).copy()
+            if not np.all(lo < hi):
+                raise ValueError(f"parameter {self.name}: bounds need lo < hi; got {lo}, {hi}")
+            if not np.all((s > lo) & (s < hi)):
+                raise ValueError(
+                    f"parameter {self.name}: start {s.tolist()} must lie strictly inside "
+                    f"the bounds [{lo.tolist()}, {hi.tolist()}]"
+                )
+            object.__setattr__(self, "lo", lo)
+            object.__setattr__(self, "hi", hi)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=int))
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraConstants:
+    """What the fit takes as known. Lengths in metres."""
+
+    focal_length: float
+    principal_separation: float
+    pupil_magnification: float
+    pixel_pitch: float
+    pattern: str
+    wavelengths: tuple[float, float, float]
+    n_blades: int
+    white_balance: tuple[float, float, float] = (2.0, 1.0, 2.0)
+    colour_matrix: tuple | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfigSpec:
+    """One lens setting (focus) and object distance; its captures share the PSF."""
+
+    name: str
+    focus_distance: float
+    object_distance: float
+    grid: Grid
+
+
+@dataclasses.dataclass(frozen=True)
+class CaptureSpec:
+    """One capture: its configuration, nominal exposure time (s) and the rough source
+    position relative to its region's centre pixel (h//2, w//2), in pixels (row, col)."""
+
+    name: str
+    config: str
+    exposure_time: float
+    base_offset: tuple[float, float]
+
+
+@dataclasses.dataclass(frozen=True)
+class FitModel:
+    camera: CameraConstants
+    configs: tuple[ConfigSpec, ...]
+    captures: tuple[CaptureSpec, ...]
+    params: tuple[ParamSpec, ...]
+
+    def __post_init__(self):
+        names = [p.name for p in self.params]
+        if len(set(names)) != len(names):
+            raise ValueError(f"duplicate parameter names in {names}")
+        for p in self.params:
+            want = param_shape(p.name, self.camera.n_blades)
+            if p.shape != want:
+                raise ValueError(f"parameter {p.name}: shape {p.shape}, expected {want}")
+        cfg = {c.name for c in self.configs}
+        for c in self.captures:
+            if c.config not in cfg:
+                raise ValueError(f"capture {c.name}: unknown configuration {c.config!r}")
+        for req in ("circumradius", "rotation", "source_radius", "phi0", "toe", "knee"):
+            if req not in names:
+                raise ValueError(f"fit model lacks parameter {req!r}")
+
+    @property
+    def param(self) -> dict[str, ParamSpec]:
+        return {p.name: p for p in self.params}
+
+    @property
+    def free(self) -> tuple[ParamSpec, ...]:
+        return tuple(p for p in self.params if p.free)
+
+    @property
+    def n_free(self) -> int:
+        return sum(p.size for p in self.free)
+
+    def captures_of(self, config: str) -> tuple[CaptureSpec, ...]:
+        return tuple(c for c in self.captures if c.config == config)
+
+    def with_starts(self, values: dict[str, np.ndarray]) -> FitModel:
+        """A copy with new start values (bounds unchanged)."""
+        ps = tuple(
+            dataclasses.replace(p, start=np.asarray(values[p.name], float))
+            if p.name in values else p
+            for p in self.params
+        )
+        return dataclasses.replace(self, params=ps)
+
+    def with_values(self, values: dict[str, np.ndarray]) -> FitModel:
+        """A copy with every parameter fixed at ``values`` (default: its start)."""
+        ps = tuple(
+            ParamSpec(p.name, p.shape, False, np.asarray(values.get(p.name, p.start), float))
+            for p in self.params
+        )
+        return dataclasses.replace(self, params=ps)
+
+
+# ---------------------------------------------------------------- parameter transforms
+
+def _logit(p):
+    return jnp.log(p) - jnp.log1p(-p)
+
+
+def to_unconstrained(model: FitModel, values: dict | None = None) -> jax.Array:
+    """Flat u for the free parameters' ``values`` (default: their starts)."""
+    parts = []
+    for p in model.free:
+        x = np.asarray(p.start if values is None else values[p.name], float)
+        frac = np.clip((x - p.lo) / (p.hi - p.lo), 1e-9, 1 - 1e-9)
+        parts.append(_logit(jnp.asarray(frac.ravel())))
+    return jnp.concatenate(parts) if parts else jnp.zeros((0,))
+
+
+def from_unconstrained(model: FitModel, u: jax.Array) -> dict[str, jax.Array]:
+    """Physical values of every parameter (free from ``u``, fixed from their starts)."""
+    out = {}
+    i = 0
+    for p in model.params:
+        if p.free:
+            k = p.size
+            v = p.lo.ravel() + (p.hi - p.lo).ravel() * jax.nn.sigmoid(u[i : i + k])
+            out[p.name] = v.reshape(p.shape)
+            i += k
+        else:
+            out[p.name] = jnp.asarray(p.start)
+    return out
+
+
+def pupil_of(model: FitModel, x: dict):
+    n = model.camera.n_blades
+    r, rot = x["circumradius"], x["rotation"]
+    dr = x.get("vertex_radial")
+    da = x.get("vertex_angular")
+    if dr is None and da is None:
+        return RegularPolygon(n, r, rot)
+    dr = jnp.zeros(n) if dr is None else dr - jnp.mean(dr)
+    da = jnp.zeros(n) if da is None else da - jnp.mean(da)
+    theta = rot + 2 * math.pi * jnp.arange(n) / n + da
+    rad = r * (1.0 + dr)
+    return Polygon(jnp.stack([rad * jnp.cos(theta), rad * jnp.sin(theta)], axis=-1))
+
+
+def camera_scene(model: FitModel, x: dict, config: str):
+    """From physical parameter values ``x``: the camera and scene of ``config`` (its
+    first capture) and, for all its captures, the exposure times (K,) in seconds and
+    the source positions (K, 2) in the object plane (metres, x right, y up)."""
+    cc = model.camera
+    cfg = next(c for c in model.configs if c.name == config)
+    lens = Lens(
+        pupil_of(model, x), focal_length=cc.focal_length, focus_distance=cfg.focus_distance,
+        principal_separation=cc.principal_separation,
+        pupil_magnification=cc.pupil_magnification, defocus=x.get(f"defocus/{config}"),
+    )
+    sensor = Sensor(
+        pixel_pitch=cc.pixel_pitch, pattern=cc.pattern, wavelengths=cc.wavelengths,
+        phi0=x["phi0"], response=Response(toe=x["toe"], knee=x["knee"]),
+        white_balance=cc.white_balance, colour_matrix=cc.colour_matrix,
+    )
+    camera = Camera(lens, sensor)
+    caps = model.captures_of(config)
+    ts = jnp.stack([
+        c.exposure_time * x.get(f"exposure_scale/{c.name}", jnp.asarray(1.0)) for c in caps
+    ])
+    bg = x.get("background", jnp.zeros(3))
+    scene = Scene(object_distance=cfg.object_distance,
+                  sources=(DiscSource(x["source_radius"]),), exposure_time=ts[0], background=bg)
+    # pixel offsets (row, col) on the sensor → object-plane positions; the image of
+    # (x, y) is M (x, y) and rows grow downwards
+    m = geometry_of(camera, scene).magnification
+    off = x.get(f"source_offset/{config}", jnp.zeros(2))
+    rc = jnp.asarray([c.base_offset for c in caps]) + off[None, :]
+    pos = jnp.stack([rc[:, 1] * cc.pixel_pitch / m, -rc[:, 0] * cc.pixel_pitch / m], axis=-1)
+    scene = eqx.tree_at(lambda s: s.sources, scene, (DiscSource(x["source_radius"], pos[0]),))
+    return camera, scene, ts, pos
+
+
+def predict(model: FitModel, x: dict, *, full: bool = False) -> dict:
+    """RAW mosaics ζ (K_c, h, w) per configuration (``full``: whole Predictions). The
+    captures of a configuration are one vmap over exposure time (and source position,
+    when the captures' rough positions differ); the PSF depends on neither, so JAX
+    computes it once per configuration, and with a shared position the image too."""
+    out = {}
+    for cfg in model.configs:
+        camera, scene, ts, pos = camera_scene(model, x, cfg.name)
+        offs = {c.base_offset for c in model.captures_of(cfg.name)}
+
+        def one(t, p, camera=camera, scene=scene, grid=cfg.grid):
+            s = eqx.tree_at(lambda s: (s.exposure_time, s.sources[0].position), scene, (t, p))
+            pr = simulate(camera, s, grid)
+            return pr if full else pr.cfa
+
+        if len(offs) == 1:
+            out[cfg.name] = jax.vmap(one, in_axes=(0, None))(ts, pos[0])
+        else:
+            out[cfg.name] = jax.vmap(one)(ts, pos)
+    return out
+
+
+# ----------------------------------------------------------------------- residuals
+
+def noise_sigma(zeta, *, gain_e_per_dn: float, read_noise_dn: float, full_scale_dn: float):
+    """σ of normalised ζ under the Poisson–Gaussian model: var = ζ/(g·S) + (r/S)²,
+    with S = white − black in DN and g electrons per DN."""
+    z = jnp.maximum(zeta, 0.0)
+    return jnp.sqrt(z / (gain_e_per_dn * full_scale_dn) + (read_noise_dn / full_scale_dn) ** 2)
+
+
+def make_residual_fn(model: FitModel, *, jac_batch: int = 4) -> Callable:
+    """``fn(u, args) -> residuals`` per configuration, (K_c, h, w).
+
+    ``args = {"data": {config: (ζ_obs, weight)}, "active": (P,), "u_ref": (P,)}``: only
+    the active elements of ``u`` move the model (the others stay at ``u_ref``), so a
+    solve can hold some parameters (e.g. the response curves, at first) without
+    recompiling; their Jacobian columns are zero and the damped step leaves them.
+
+    The Jacobian is materialised ``jac_batch`` columns at a time (a custom JVP rule that
+    maps over the parameter directions): forward-mode through the whole chain for all P
+    directions at once would hold P copies of every grid-sized intermediate (tens of
+    GB for a few captures on 400² grids); this way the solver's linearisation keeps only
+    the (residuals × P) matrix.
+    """
+
+    def raw(u, args):
+        u_eff = args["u_ref"] + args["active"] * (u - args["u_ref"])
+        x = from_unconstrained(model, u_eff)
+        pred = predict(model, x)
+        return {k: (pred[k] - args["data"][k][0]) * args["data"][k][1] for k in pred}
+
+    @jax.custom_jvp
+    def fn(u, args):
+        return raw(u, args)
+
+    @fn.defjvp
+    def _fn_jvp(primals, tangents):
+        u, args = primals
+        du = tangents[0]  # the data are not differentiated
+        y = raw(u, args)
+        if u.shape[0] == 0:
+            return y, jax.tree_util.tree_map(jnp.zeros_like, y)
+
+        def column(e):
+            return jax.jvp(lambda v: raw(v, args), (u,), (e,))[1]
+
+        cols = jax.lax.map(column, jnp.eye(u.shape[0], dtype=u.dtype),
+                           batch_size=min(jac_batch, u.shape[0]))
+        dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c, axes=1), cols)
+        return y, dy
+
+    return fn
+
+
+def make_args(model: FitModel, data: dict, u_ref=None, *, hold: tuple[str, ...] = ()) -> dict:
+    """Solver ``args`` from ``data`` = {config: (ζ_obs, weight)}, holding the parameter
+    blocks named in ``hold`` (base names or full names) at ``u_ref``."""
+    active = []
+    for p in model.free:
+        on = p.name not in hold and base_name(p.name) not in hold
+        active.append(np.full(p.size, 1.0 if on else 0.0))
+    active = jnp.asarray(np.concatenate(active)) if active else jnp.zeros((0,))
+    if u_ref is None:
+        u_ref = to_unconstrained(model)
+    return {"data": data, "active": active, "u_ref": jnp.asarray(u_ref)}
+
+
+def weights(sigma, saturated):
+    return jnp.where(saturated, 0.0, 1.0 / sigma)
+
+
+# ------------------------------------------------------------------------- solving
+
+@dataclasses.dataclass
+class SolveResult:
+    u: jax.Array
+    steps: int
+    accepted: int
+    loss_start: float
+    loss: float
+    result: str
+    seconds: float
+    compile_seconds: float
+
+
+class Fitter:
+    """Compiled least-squares machinery for one :class:`FitModel`: the solver step, the
+    residuals and their Jacobian, compiled once and reused for any start ``u0`` and any
+    data ``args`` of the same shapes (so a recovery study compiles once).
+
+    ``args`` comes from :func:`make_args`: per configuration ``(ζ_obs, weight)``, both
+    (K_c, h, w); the residual is ``(ζ_pred − ζ_obs)·weight`` with weight = 1/σ, 0 on
+    saturated pixels.
+    """
+
+    def __init__(self, model: FitModel, *, method: str = "lm", rtol: float = 1e-6,
+                 atol: float = 1e-6):
+        self.model = model
+        fn = make_residual_fn(model)
+        self._fn = fn
+        wrapped = lambda u, a: (fn(u, a), None)  # noqa: E731
+        if method == "lm":
+            sol = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+        elif method == "gn":
+            sol = optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.QR())
+        else:
+            raise ValueError(f"solver method must be 'lm' or 'gn'; got {method!r}")
+        self.method = method
+        tags = frozenset()
+
+        @eqx.filter_jit
+        def init(u, a):
+            f_struct = jax.eval_shape(lambda: fn(u, a))
+            return sol.init(wrapped, u, a, {}, f_struct, None, tags)
+
+        @eqx.filter_jit
+        def step(u, state, a):
+            u, state, _ = sol.step(wrapped, u, a, {}, state, tags)
+            done, res = sol.terminate(wrapped, u, a, {}, state, tags)
+            leaves = jax.tree_util.tree_leaves(state.f_info.residual)
+            loss = 0.5 * sum(jnp.sum(r * r) for r in leaves)
+            size = getattr(state.search_state, "step_size", jnp.asarray(1.0))
+            return u, state, done, res == optx.RESULTS.successful, loss, size, \
+                state.num_accepted_steps
+
+        def flat(u, a):
+            r = fn(u, a)
+            return jnp.concatenate([v.ravel() for v in jax.tree_util.tree_leaves(r)])
+
+        self._init, self._step = init, step
+        self._flat = eqx.filter_jit(flat)
+        self._jac = eqx.filter_jit(jax.jacfwd(flat))
+        self._predict = eqx.filter_jit(lambda u: predict(model, from_unconstrained(model, u)))
+        self._predict_full = eqx.filter_jit(
+            lambda u: predict(model, from_unconstrained(model, u), full=True))
+
+    def residuals(self, u, args) -> np.ndarray:
+        return np.asarray(self._flat(u, args))
+
+    def loss(self, u, args) -> float:
+        r = self.residuals(u, args)
+        return float(0.5 * r @ r)
+
+    def predict(self, u, *, full: bool = False) -> dict:
+        return (self._predict_full if full else self._predict)(u)
+
+    def solve(self, u0, args, *, max_steps: int = 100,
+              progress: Callable[[int, float, float, bool], None] | None = None
+              ) -> SolveResult:
+        """Run up to ``max_steps`` solver steps from ``u0``; ``progress(k, loss,
+        step_size, done)`` is called from Python after each (loss of the last accepted
+        point; the LM step size is the trust-region scale, 1/damping)."""
+        t0 = time.perf_counter()
+        state = self._init(u0, args)
+        u = u0
+        loss0 = None
+        loss = float("nan")
+        t_compile = 0.0
+        done = ok = False
+        k = acc = 0
+        t0 = time.perf_counter()
+        for k in range(1, max_steps + 1):
+            t1 = time.perf_counter()
+            u, state, done_a, ok_a, loss_a, size, acc_a = self._step(u, state, args)
+            loss = float(loss_a)
+            if k == 1:
+                t_compile = time.perf_counter() - t1
+            done, ok, acc = bool(done_a), bool(ok_a), int(acc_a)
+            if k == 2:  # the first step only evaluates the start
+                loss0 = loss
+            if progress is not None:
+                progress(k, loss, float(size), done)
+            if done:
+                break
+        return SolveResult(
+            u=u, steps=k, accepted=acc, loss_start=loss if loss0 is None else loss0,
+            loss=loss, result=("converged" if ok else "failed") if done else "max_steps",
+            seconds=time.perf_counter() - t0 - t_compile, compile_seconds=t_compile,
+        )
+
+    def covariance(self, u, args):
+        """See :func:`covariance`."""
+        return _covariance(self.model, np.asarray(self._jac(u, args)), self.residuals(u, args), u)
+
+
+def solve(model: FitModel, u0, args, *, max_steps: int = 100, rtol: float = 1e-6,
+          atol: float = 1e-6, method: str = "lm", progress=None) -> SolveResult:
+    """One-off :meth:`Fitter.solve` (compiles each call; reuse a Fitter to avoid that)."""
+    return Fitter(model, method=method, rtol=rtol, atol=atol).solve(
+        u0, args, max_steps=max_steps, progress=progress)
+
+
+def loss_of(model: FitModel, u, args) -> float:
+    r = eqx.filter_jit(make_residual_fn(model))(u, args)
+    return float(0.5 * sum(jnp.sum(v * v) for v in jax.tree_util.tree_leaves(r)))
+
+
+# --------------------------------------------------------------------- uncertainty
+
+def covariance(model: FitModel, u, args):
+    """Gauss–Newton covariance of the free parameters at ``u``.
+
+    Cov_u = (JᵀJ)⁺ (pseudo-inverse: the vertex deviations' mean-free gauge leaves null
+    directions) with J the Jacobian of the σ-weighted residuals, mapped to physical
+    units through the diagonal Jacobian of the bounds transform. Returns the covariance
+    (physical units, flattened free parameters), standard errors per parameter and
+    diagnostics (χ², degrees of freedom, reduced χ², condition number of JᵀJ).
+    """
+    return Fitter(model).covariance(u, args)
+
+
+def _covariance(model: FitModel, j: np.ndarray, r: np.ndarray, u):
+    jtj = j.T @ j
+    cov_u = np.linalg.pinv(jtj, rcond=1e-12, hermitian=True)
+
+    def xflat(u_):
+        x = from_unconstrained(model, u_)
+        return jnp.concatenate([x[p.name].ravel() for p in model.free])
+
+    dxdu = np.asarray(jax.jacfwd(xflat)(u))
+    cov = dxdu @ cov_u @ dxdu.T
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    out = {}
+    i = 0
+    for p in model.free:
+        out[p.name] = se[i : i + p.size].reshape(p.shape)
+        i += p.size
+    n_used = int(np.count_nonzero(r))
+    w = np.linalg.eigvalsh(jtj) if jtj.size else np.array([1.0])
+    dof = max(n_used - model.n_free, 1)
+    diag = {
+        "chi2": float(r @ r), "n_residuals": n_used, "n_free": model.n_free, "dof": dof,
+        "reduced_chi2": float(r @ r) / dof,
+        "jtj_condition": float(w.max() / max(w.min(), 1e-300)),
+    }
+    return cov, out, diag
+
+
+# ----------------------------------------------------------------------- comparisons
+
+def wrap_rotation(delta, n_blades: int):
+    """An angle difference wrapped into [−π/n, π/n): a regular n-gon rotated by 2π/n is
+    the same aperture."""
+    period = 2 * math.pi / n_blades
+    return (np.asarray(delta) + period / 2) % period - period / 2
+
+
+def response_error(x_fit: dict, x_true: dict, h_range: tuple[float, float], *, n: int = 512):
+    """Max |ζ_fit(H) − ζ_true(H)| per channel over physical exposures H = C·t in
+    ``h_range`` (log-spaced), as a fraction of the true curve's range there."""
+    h = np.geomspace(max(h_range[0], 1e-12), h_range[1], n)
+    out = []
+    for c in range(3):
+        zt = np.asarray(response_curve(h / x_true["phi0"][c], x_true["toe"][c], x_true["knee"][c]))
+        zf = np.asarray(response_curve(h / x_fit["phi0"][c], x_fit["toe"][c], x_fit["knee"][c]))
+        rng = zt.max() - zt.min()
+        out.append(float(np.max(np.abs(zf - zt)) / max(rng, 1e-12)))
+    return np.asarray(out)
+
+
+__all__ = [
+    "ParamSpec", "CameraConstants", "ConfigSpec", "CaptureSpec", "FitModel", "SolveResult",
+    "to_unconstrained", "from_unconstrained", "camera_scene", "predict", "noise_sigma",
+    "make_residual_fn", "make_args", "weights", "Fitter", "solve", "loss_of", "covariance", "wrap_rotation",
+    "response_error", "pupil_of",
+]

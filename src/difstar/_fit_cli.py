@@ -1,0 +1,666 @@
+"""``difstar synth`` and ``difstar fit``: synthetic DNG captures and inverse characterization.
+
+    difstar synth fit/CAMPAIGN/manifest.json [--overwrite]
+        simulate the manifest's captures from its ``synthetic.truth`` and write them as
+        DNG files (Poisson–Gaussian noise, clipped at the white level) that rawpy reads.
+    difstar fit fit/CAMPAIGN/manifest.json [--out DIR] [--overwrite]
+        fit the free parameters to the RAW captures; writes fit_result.json, predicted /
+        observed / residual maps, Fig. 5-style profiles and a Table 1-style MSE/SSIM table.
+    difstar fit fit/CAMPAIGN/manifest.json --recovery-study 10 [--seed S]
+        (manifests with a ``synthetic`` block) fit from 10 starts perturbed by up to 20 %
+        on every free parameter and tabulate the errors against the truth.
+
+Outer layer: files, progress printing and figures live here; :mod:`difstar._fit` is pure.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+PERTURB = 0.2  # recovery study: starts within ± 20 % of each parameter
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# ------------------------------------------------------------------------ model setup
+
+def camera_constants(man):
+    from difstar._fit import CameraConstants
+
+    c = man.camera
+    return CameraConstants(
+        focal_length=float(c["focal_length"]),
+        principal_separation=float(c["principal_separation"]),
+        pupil_magnification=float(c["pupil_magnification"]),
+        pixel_pitch=float(c["pixel_pitch"]), pattern=c.get("pattern", "RGGB"),
+        wavelengths=tuple(float(w) for w in c["wavelengths"]), n_blades=int(c["blades"]),
+        white_balance=tuple(float(w) for w in c["white_balance"]),
+        colour_matrix=None if "colour_matrix" not in c else tuple(map(tuple, c["colour_matrix"])),
+    )
+
+
+def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
+                pattern: str, padding: float | None = None, values: dict | None = None):
+    """A FitModel for the manifest: grids from ``choose_grid`` at the parameters' most
+    demanding bounds (largest |Δz| and source), ``crops`` per configuration, the
+    captures' rough source offsets from their region centres (px) and exposure times."""
+    import dataclasses
+
+    from difstar import Grid
+    from difstar._fit import CaptureSpec, ConfigSpec, FitModel, ParamSpec, camera_scene
+    from difstar._sampling import choose_grid
+
+    cc = dataclasses.replace(camera_constants(man), pattern=pattern)
+    params = []
+    for name, p in man.parameters.items():
+        start = p["start"] if values is None else values[name]
+        params.append(ParamSpec(name, p["shape"], p["free"], start, p["lo"], p["hi"]))
+    caps = tuple(
+        CaptureSpec(c.name, c.configuration, float(exposure_times[c.name]),
+                    tuple(float(v) for v in base_offsets[c.name]))
+        for c in man.captures
+    )
+    pad = man.grid.get("padding") if padding is None else padding
+    configs = []
+    for name, cfg in man.configurations.items():
+        crop = tuple(crops[name])
+        dummy = ConfigSpec(name, float(cfg["focus_distance"]), float(cfg["object_distance"]),
+                           Grid(n=max(crop), crop=crop, raw_only=True))
+        probe = FitModel(cc, (dummy,), tuple(c for c in caps if c.config == name),
+                         tuple(params))
+        # the grid must hold the values the solver will try: the starts with 30 % to spare
+        # (the bounds would often double the grid, and with it time and memory)
+        x = {p.name: np.asarray(p.start) for p in probe.params}
+        for key in (f"defocus/{name}", "source_radius", "circumradius"):
+            p = probe.param.get(key)
+            if p is not None and p.free:
+                x[key] = 1.3 * np.abs(p.start) + 0.3 * man.parameters[key]["perturb_scale"]
+        camera, scene, _, _ = camera_scene(probe, x, name)
+        g = choose_grid(camera, scene, crop=crop, padding=pad, raw_only=True,
+                        oversample=man.grid.get("oversample"))
+        dz = probe.param.get(f"defocus/{name}")
+        use_dz = g.use_defocus or (dz is not None and dz.free)
+        configs.append(dataclasses.replace(dummy, grid=Grid(
+            n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz, raw_only=True)))
+    return FitModel(cc, tuple(configs), caps, tuple(params))
+
+
+def load_captures(man):
+    """Read each capture's region of interest: ζ, the saturated mask, levels."""
+    from difstar.io._manifest import roi_origin
+    from difstar.io._raw import read_raw
+    from difstar.io._scene import SceneError
+
+    out = {}
+    pattern = None
+    for c in man.captures:
+        rc = read_raw(c.path)
+        if pattern is None:
+            pattern = rc.pattern
+        elif rc.pattern != pattern:
+            raise SceneError(f"{c.path}: Bayer layout {rc.pattern} differs from the other "
+                             f"captures' {pattern}")
+        t = c.exposure_time if c.exposure_time is not None else rc.exposure_time
+        if t is None:
+            raise SceneError(f"{man.path}: field captures/{c.name}/exposure_time: {c.path} has "
+                             "no EXIF ExposureTime; give exposure_time in the manifest")
+        try:
+            r0, c0 = roi_origin(c.source_position, c.roi_size, rc.shape)
+        except ValueError as exc:
+            raise SceneError(f"{man.path}: field captures/{c.name}/roi_size: {exc}") from exc
+        h, w = c.roi_size
+        sl = (slice(r0, r0 + h), slice(c0, c0 + w))
+        full = float(rc.white_level - np.mean(rc.black_level))
+        out[c.name] = {
+            "zeta": rc.cfa[sl], "saturated": rc.saturated[sl], "origin": (r0, c0),
+            "base_offset": (c.source_position[0] - (r0 + h // 2),
+                            c.source_position[1] - (c0 + w // 2)),
+            "exposure_time": float(t), "full_scale_dn": full, "crop": (h, w),
+        }
+    return out, pattern
+
+
+def observed_data(model, caps: dict, noise: dict, sigma_from: dict | None = None):
+    """{config: (ζ_obs, weight)} with σ from ``sigma_from`` ({config: ζ (K, h, w)}, e.g.
+    a prediction) or from the observed ζ."""
+    import jax.numpy as jnp
+
+    from difstar._fit import noise_sigma, weights
+
+    data = {}
+    for cfg in model.configs:
+        names = [c.name for c in model.captures_of(cfg.name)]
+        z = np.stack([caps[n]["zeta"] for n in names])
+        sat = np.stack([caps[n]["saturated"] for n in names])
+        fs = np.asarray([caps[n]["full_scale_dn"] for n in names])[:, None, None]
+        ref = z if sigma_from is None else np.asarray(sigma_from[cfg.name])
+        sig = noise_sigma(jnp.asarray(ref), gain_e_per_dn=noise["gain_e_per_dn"],
+                          read_noise_dn=noise["read_noise_dn"], full_scale_dn=jnp.asarray(fs))
+        data[cfg.name] = (jnp.asarray(z), weights(sig, jnp.asarray(sat)))
+    return data
+
+
+def prepare(man):
+    caps, pattern = load_captures(man)
+    crops = {}
+    for c in man.captures:
+        crops[c.configuration] = caps[c.name]["crop"]
+    model = build_model(
+        man, crops=crops, base_offsets={k: v["base_offset"] for k, v in caps.items()},
+        exposure_times={k: v["exposure_time"] for k, v in caps.items()}, pattern=pattern,
+    )
+    return model, caps
+
+
+# ------------------------------------------------------------------------------ fit
+
+def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = True):
+    """Stage 1: the response curves (toe, knee) held at their starts, σ from the
+    observed values; stage 2 (repeated ``reweight`` times): everything free, σ from the
+    current prediction. Returns the final u and per-stage records."""
+    from difstar._fit import make_args
+
+    stages = []
+    u = u0
+    plan = [("optics, exposure, source (response curves held)", ("toe", "knee"), False)]
+    plan += [("all free parameters, σ from the prediction", (), True)] * max(
+        1, int(solver.get("reweight", 1)))
+    for label, hold, reweight in plan:
+        sigma_from = fitter.predict(u) if reweight else None
+        data = observed_data(model, caps, noise, sigma_from)
+        args = make_args(model, data, u, hold=hold)
+        if verbose:
+            _log(f"difstar fit: stage {len(stages) + 1}: {label}")
+            _log(f"{'iter':>6} {'loss':>14} {'step size':>11}")
+
+        def progress(k, loss, size, done):
+            if verbose:
+                _log(f"{k:>6d} {loss:>14.6g} {size:>11.3g}" + ("  (done)" if done else ""))
+
+        res = fitter.solve(u, args, max_steps=int(solver.get("max_steps", 100)),
+                           progress=progress)
+        u = res.u
+        stages.append({
+            "label": label, "held": list(hold), "steps": res.steps, "accepted": res.accepted,
+            "loss_start": res.loss_start, "loss_end": res.loss, "result": res.result,
+            "seconds": res.seconds, "compile_seconds": res.compile_seconds,
+        })
+        if verbose:
+            _log(f"difstar fit: stage {len(stages)} {res.result} after {res.steps} steps, "
+                 f"{res.seconds:.1f} s (+ {res.compile_seconds:.1f} s compile)")
+    return u, stages, args
+
+
+def _values(model, u) -> dict:
+    from difstar._fit import from_unconstrained
+
+    return {k: np.asarray(v) for k, v in from_unconstrained(model, u).items()}
+
+
+def exposure_range(fitter, model, u, caps) -> tuple[float, float]:
+    """Physical exposures H = C·t covered by the captures' pixels (min > 0, max)."""
+    pred = fitter.predict(u, full=True)
+    los, his = [], []
+    for cfg in model.configs:
+        p = pred[cfg.name]
+        img = np.asarray(p.image)  # (K, 3, h, w)
+        ts = np.asarray([c.exposure_time for c in model.captures_of(cfg.name)])
+        h = img * ts[:, None, None, None]
+        los.append(h[h > 0].min())
+        his.append(h.max())
+    return float(min(los)), float(max(his))
+
+
+def compare_truth(model, x_fit: dict, truth: dict, h_range) -> dict:
+    """Errors against the truth and the issue's pass criteria."""
+    from difstar._fit import response_error, wrap_rotation
+
+    n = model.camera.n_blades
+    out = {}
+    free = {p.name for p in model.free}
+    dz_scale = max([abs(float(truth[k])) for k in truth if k.startswith("defocus/")] or [0.0])
+    for name in free:
+        t, f = np.asarray(truth[name], float), np.asarray(x_fit[name], float)
+        if name == "rotation":
+            err = float(np.rad2deg(wrap_rotation(f - t, n)))
+            out[name] = {"error_deg": err, "pass": abs(err) <= 0.2, "criterion": "|Δ| ≤ 0.2°"}
+        elif name == "circumradius":
+            rel = float((f - t) / t)
+            out[name] = {"rel_error": rel, "pass": abs(rel) <= 5e-3, "criterion": "≤ 0.5 %"}
+        elif name.startswith("defocus/"):
+            if abs(float(t)) > 0:
+                rel = float((f - t) / t)
+                out[name] = {"rel_error": rel, "pass": abs(rel) <= 1e-2, "criterion": "≤ 1 %"}
+            else:
+                err = float(f - t)
+                out[name] = {"abs_error_m": err, "pass": abs(err) <= 1e-2 * dz_scale,
+                             "criterion": "|Δ| ≤ 1 % of the largest true |Δz|"}
+        elif name == "phi0":
+            rel = ((f - t) / t).tolist()
+            out[name] = {"rel_error": rel, "pass": bool(np.all(np.abs(rel) <= 1e-2)),
+                         "criterion": "≤ 1 % per channel"}
+        else:
+            den = np.where(np.abs(t) > 0, np.abs(t), 1.0)
+            out[name] = {"error": (f - t).tolist(), "rel_error": ((f - t) / den).tolist()}
+    if {"phi0", "toe", "knee"} & free:
+        err = response_error(x_fit, truth, h_range)
+        out["response_curves"] = {
+            "max_error_fraction_of_range": err.tolist(), "pass": bool(np.all(err <= 1e-2)),
+            "criterion": "max |ζ_fit(H) − ζ_true(H)| ≤ 1 % of the range, per channel, over "
+                         f"H = C·t in [{h_range[0]:.3g}, {h_range[1]:.3g}] s",
+        }
+    crit = [v["pass"] for v in out.values() if "pass" in v]
+    out["all_pass"] = bool(all(crit))
+    return out
+
+
+def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, fitter=None):
+    """Fit once. Returns (result document, model, caps, fitter, u)."""
+    import jax
+
+    from difstar._fit import Fitter, to_unconstrained
+
+    t_all = time.perf_counter()
+    if model is None:
+        model, caps = prepare(man)
+    if fitter is None:
+        fitter = Fitter(model, method=man.solver["method"], rtol=man.solver["rtol"],
+                        atol=man.solver["atol"])
+    if u0 is None:
+        u0 = to_unconstrained(model)
+    if verbose:
+        _log(f"difstar fit: {len(model.captures)} captures, {model.n_free} free parameters, "
+             f"grids " + ", ".join(f"{c.name}: n = {c.grid.n}, crop = {c.grid.crop}"
+                                    for c in model.configs))
+    u, stages, args = run_stages(fitter, model, caps, man.noise, u0, man.solver,
+                                 verbose=verbose)
+    t0 = time.perf_counter()
+    cov, se, diag = fitter.covariance(u, args)
+    t_cov = time.perf_counter() - t0
+    x = _values(model, u)
+    params = {}
+    for p in model.params:
+        d = {"value": x[p.name].tolist(), "free": p.free, "start": p.start.tolist()}
+        if p.free:
+            d["stderr"] = se[p.name].tolist()
+            d["bounds"] = [p.lo.tolist(), p.hi.tolist()]
+            at = (np.isclose(x[p.name], p.lo, rtol=1e-4, atol=0)
+                  | np.isclose(x[p.name], p.hi, rtol=1e-4, atol=0))
+            d["at_bound"] = bool(np.any(at))
+        params[p.name] = d
+    n = model.camera.n_blades
+    period = 2 * math.pi / n
+    derived = {
+        "rotation_mod_symmetry_deg": float(np.rad2deg(float(x["rotation"]) % period)),
+        "circumradius_mm": float(x["circumradius"]) * 1e3,
+        "entrance_f_number": model.camera.focal_length * model.camera.pupil_magnification
+        / (2 * float(x["circumradius"])),
+    }
+    result = {
+        "schema": "difstar-fit-result/1", "manifest": str(man.path), "name": man.name,
+        "parameters": params, "derived": derived,
+        "convergence": {"solver": {"lm": "optimistix.LevenbergMarquardt",
+                                   "gn": "optimistix.GaussNewton"}[fitter.method],
+                        "stages": stages, **diag},
+        "timing_s": {"total": time.perf_counter() - t_all, "covariance": t_cov,
+                     "solve": sum(s["seconds"] for s in stages),
+                     "compile": sum(s["compile_seconds"] for s in stages)},
+        "jax": {"version": jax.__version__, "backend": jax.default_backend(),
+                "x64": bool(jax.config.jax_enable_x64)},
+    }
+    if man.synthetic is not None:
+        h_range = exposure_range(fitter, model, u, caps)
+        result["truth_comparison"] = compare_truth(model, x, man.synthetic["truth"], h_range)
+    return result, model, caps, fitter, u
+
+
+# ------------------------------------------------------------------------- outputs
+
+def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> list[str]:
+    import jax.numpy as jnp
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from difstar._colour import render_srgb
+    from difstar._demosaic import demosaic
+    from difstar._fit import noise_sigma
+    from difstar._metrics import profile_circle, profile_line, table1
+    from difstar.io._output import write_json, write_png_srgb
+
+    written = ["fit_result.json"]
+    pred = fitter.predict(u, full=True)
+    cc = model.camera
+    rows = []
+    for cfg in model.configs:
+        p = pred[cfg.name]
+        for i, c in enumerate(model.captures_of(cfg.name)):
+            obs = caps[c.name]["zeta"]
+            sat = caps[c.name]["saturated"]
+            pc = np.asarray(p.cfa[i])
+            sig = np.asarray(noise_sigma(pc, gain_e_per_dn=noise["gain_e_per_dn"],
+                                         read_noise_dn=noise["read_noise_dn"],
+                                         full_scale_dn=caps[c.name]["full_scale_dn"]))
+            fig, ax = plt.subplots(1, 3, figsize=(12, 4))
+            lo = 1e-4
+            for a, im, title in ((ax[0], obs, "observed ζ"), (ax[1], pc, "predicted ζ")):
+                h = a.imshow(np.log10(np.clip(im, lo, 1)), vmin=-4, vmax=0, cmap="magma")
+                a.set_title(f"{title} (log10)")
+                fig.colorbar(h, ax=a, fraction=0.046)
+            res = np.where(sat, np.nan, (pc - obs) / sig)
+            h = ax[2].imshow(res, vmin=-5, vmax=5, cmap="RdBu_r")
+            ax[2].set_title("residual (pred − obs)/σ, saturated blank")
+            fig.colorbar(h, ax=ax[2], fraction=0.046)
+            for a in ax:
+                a.set_xticks([])
+                a.set_yticks([])
+            fig.suptitle(f"{c.name}: t = {c.exposure_time:g} s")
+            fig.tight_layout()
+            fig.savefig(tmp / f"capture_{c.name}.png", dpi=80)
+            plt.close(fig)
+            written.append(f"capture_{c.name}.png")
+            s_pred = render_srgb(jnp.asarray(pc), cc.pattern, white_balance=cc.white_balance,
+                                 matrix=np.eye(3) if cc.colour_matrix is None
+                                 else cc.colour_matrix)
+            s_obs = render_srgb(jnp.asarray(np.clip(obs, 0, 1)), cc.pattern,
+                                white_balance=cc.white_balance,
+                                matrix=np.eye(3) if cc.colour_matrix is None
+                                else cc.colour_matrix)
+            t1 = table1(s_pred, s_obs)
+            row = {"capture": c.name, "configuration": cfg.name,
+                   "exposure_time_s": c.exposure_time}
+            for ch, d in t1.items():
+                row[ch] = {"MSE": float(d["MSE"]), "SSIM": float(d["SSIM"])}
+            rows.append(row)
+            if i == len(model.captures_of(cfg.name)) - 1:
+                write_png_srgb(tmp / f"srgb_pred_{c.name}.png", s_pred)
+                write_png_srgb(tmp / f"srgb_obs_{c.name}.png", s_obs)
+                written += [f"srgb_pred_{c.name}.png", f"srgb_obs_{c.name}.png"]
+        # Fig. 5-style profiles on the brightest capture that is not saturated at the
+        # profile radius: per channel, model lines, observation dots
+        i = len(model.captures_of(cfg.name)) - 1
+        c = model.captures_of(cfg.name)[i]
+        obs_rgb = np.asarray(demosaic(jnp.asarray(caps[c.name]["zeta"]), cc.pattern,
+                                      method="bilinear"))
+        pz = np.asarray(p.zeta[i])
+        h, w = pz.shape[-2:]
+        r0 = h // 2 + c.base_offset[0]
+        c0 = w // 2 + c.base_offset[1]
+        rad = 0.335 * (w / 2)
+        fig, ax = plt.subplots(1, 3, figsize=(14, 3.8))
+        specs = [
+            ("circle r = 0.335 u_max", lambda im: profile_circle(im, (r0, c0), rad, 720),
+             np.arange(720) / 2.0, "angle (deg)"),
+            ("row 0.35 v_max from top", lambda im: profile_line(im, 0.35 * h / 2, 0, w - 1, w),
+             np.arange(w), "column (px)"),
+            ("row v_max from top (centre)", lambda im: profile_line(im, h / 2, 0, w - 1, w),
+             np.arange(w), "column (px)"),
+        ]
+        for a, (title, f, xs, xl) in zip(ax, specs):
+            po = np.asarray(f(jnp.asarray(obs_rgb)))
+            pp = np.asarray(f(jnp.asarray(pz)))
+            for ch, col in enumerate(("tab:red", "tab:green", "tab:blue")):
+                a.plot(xs, pp[ch], color=col, lw=1)
+                a.plot(xs, po[ch], ".", color=col, ms=2)
+            a.set_title(title)
+            a.set_xlabel(xl)
+            a.set_ylabel("ζ")
+        fig.suptitle(f"{cfg.name}: {c.name} (lines: model, dots: capture)")
+        fig.tight_layout()
+        fig.savefig(tmp / f"profiles_{cfg.name}.png", dpi=80)
+        plt.close(fig)
+        written.append(f"profiles_{cfg.name}.png")
+    result["table1"] = rows
+    lines = ["| capture | t (s) | " + " | ".join(f"{ch} MSE | {ch} SSIM" for ch in
+                                                 ("R", "G", "B", "B/W")) + " |",
+             "|---|---|" + "---|" * 8]
+    for r in rows:
+        lines.append(f"| {r['capture']} | {r['exposure_time_s']:g} | " + " | ".join(
+            f"{r[ch]['MSE']:.2e} | {r[ch]['SSIM']:.4f}" for ch in ("R", "G", "B", "B/W")) + " |")
+    (tmp / "table1.md").write_text(
+        "MSE and SSIM of the rendered sRGB images, prediction against capture (style of "
+        "the paper's Table 1)\n\n" + "\n".join(lines) + "\n")
+    written.append("table1.md")
+    write_json(tmp / "fit_result.json", result)
+    return written
+
+
+# ---------------------------------------------------------------- recovery study
+
+def perturbed_starts(man, model, rng) -> dict:
+    truth = man.synthetic["truth"]
+    out = {}
+    for p in model.free:
+        t = np.asarray(truth[p.name], float)
+        scale = np.maximum(np.abs(t), man.parameters[p.name]["perturb_scale"])
+        v = t + rng.uniform(-PERTURB, PERTURB, p.shape) * scale
+        span = p.hi - p.lo
+        out[p.name] = np.clip(v, p.lo + 1e-3 * span, p.hi - 1e-3 * span)
+    return out
+
+
+def recovery_study(man, n_starts: int, seed: int) -> dict:
+    from difstar._fit import to_unconstrained
+
+    rng = np.random.default_rng(seed)
+    rows = []
+    model = caps = fitter = None
+    t_study = time.perf_counter()
+    for i in range(n_starts):
+        if model is None:
+            model, caps = prepare(man)
+        starts = perturbed_starts(man, model, rng)
+        u0 = to_unconstrained(model, starts)
+        t0 = time.perf_counter()
+        res, model, caps, fitter, u = fit_manifest(man, u0=u0, verbose=False, model=model,
+                                                   caps=caps, fitter=fitter)
+        tc = res["truth_comparison"]
+        rows.append({"start": i, "seconds": time.perf_counter() - t0,
+                     "steps": sum(s["steps"] for s in res["convergence"]["stages"]),
+                     "compile_seconds": res["timing_s"]["compile"],
+                     "comparison": tc, "values": {k: v["value"] for k, v in
+                                                  res["parameters"].items()}})
+        _log(_row_text(i, rows[-1]))
+    n_pass = sum(r["comparison"]["all_pass"] for r in rows)
+    return {"n_starts": n_starts, "seed": seed, "perturbation": PERTURB, "n_pass": n_pass,
+            "seconds": time.perf_counter() - t_study, "rows": rows}
+
+
+def _row_text(i, row) -> str:
+    tc = row["comparison"]
+    parts = [f"start {i:2d}"]
+    for k, v in tc.items():
+        if k == "all_pass":
+            continue
+        if "error_deg" in v:
+            parts.append(f"{k} {v['error_deg']:+.4f}°")
+        elif "abs_error_m" in v:
+            parts.append(f"{k} {v['abs_error_m'] * 1e6:+.2f} µm")
+        elif k == "response_curves":
+            parts.append("Z " + "/".join(f"{e * 100:.3f}%" for e in
+                                         v["max_error_fraction_of_range"]))
+        elif "pass" in v:
+            rel = np.atleast_1d(v["rel_error"])
+            parts.append(f"{k} " + "/".join(f"{e * 100:+.3f}%" for e in rel))
+    parts.append("PASS" if tc["all_pass"] else "FAIL")
+    parts.append(f"{row['steps']} steps {row['seconds']:.0f} s")
+    return "  ".join(parts)
+
+
+def study_table(study: dict) -> str:
+    lines = ["| start | Δz (defocused) | Δz (focused) | rotation | circumradius | φ0 R/G/B | "
+             "response R/G/B (of range) | steps | s | pass |", "|" + "---|" * 10]
+    for r in study["rows"]:
+        tc = r["comparison"]
+        dz_def = next((f"{v['rel_error'] * 100:+.3f} %" for k, v in tc.items()
+                       if k.startswith("defocus/") and "rel_error" in v), "–")
+        dz_foc = next((f"{v['abs_error_m'] * 1e6:+.2f} µm" for k, v in tc.items()
+                       if k.startswith("defocus/") and "abs_error_m" in v), "–")
+        rot = f"{tc['rotation']['error_deg']:+.4f}°" if "rotation" in tc else "–"
+        cr = f"{tc['circumradius']['rel_error'] * 100:+.4f} %" if "circumradius" in tc else "–"
+        ph = "/".join(f"{e * 100:+.3f}" for e in tc["phi0"]["rel_error"]) + " %" \
+            if "phi0" in tc else "–"
+        zr = "/".join(f"{e * 100:.3f}" for e in
+                      tc["response_curves"]["max_error_fraction_of_range"]) + " %" \
+            if "response_curves" in tc else "–"
+        lines.append(f"| {r['start']} | {dz_def} | {dz_foc} | {rot} | {cr} | {ph} | {zr} | "
+                     f"{r['steps']} | {r['seconds']:.0f} | {'yes' if tc['all_pass'] else 'NO'} |")
+    lines.append("")
+    lines.append(f"{study['n_pass']} of {study['n_starts']} starts pass every criterion "
+                 f"(seed {study['seed']}, starts within ±{study['perturbation'] * 100:.0f} %; "
+                 f"{study['seconds']:.0f} s in all).")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------ synth
+
+def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
+    """Simulate the manifest's captures from ``synthetic.truth`` on full frames and
+    write them as DNGs into ``out_dir`` (whole or not at all)."""
+    from difstar._fit import Fitter, to_unconstrained
+    from difstar.io._dng import synthesize_capture, write_dng
+    from difstar.io._output import output_dir
+
+    syn = man.synthetic
+    fh, fw = syn["frame_size"]
+    pattern = man.camera.get("pattern", "RGGB")
+    model = build_model(
+        man, crops={k: (fh, fw) for k in man.configurations},
+        base_offsets={c.name: (c.source_position[0] - fh // 2, c.source_position[1] - fw // 2)
+                      for c in man.captures},
+        exposure_times={c.name: c.exposure_time for c in man.captures}, pattern=pattern,
+        padding=syn["padding"], values=syn["truth"],
+    )
+    model = model.with_values(syn["truth"])
+    _log("difstar synth: grids " + ", ".join(f"{c.name}: n = {c.grid.n}" for c in model.configs))
+    pred = Fitter(model).predict(to_unconstrained(model))
+    rng = np.random.default_rng(int(syn["seed"]))
+    black, white = float(syn["black_level"]), int(syn["white_level"])
+    r = float(syn["truth"]["circumradius"])
+    f_number = man.camera["focal_length"] * man.camera["pupil_magnification"] / (2 * r)
+    written = []
+    with output_dir(out_dir, overwrite=overwrite) as tmp:
+        for cfg in model.configs:
+            for i, c in enumerate(model.captures_of(cfg.name)):
+                entry = next(e for e in man.captures if e.name == c.name)
+                z = np.clip(np.asarray(pred[cfg.name][i]), 0.0, None)
+                raw = synthesize_capture(
+                    z, black_level=black, white_level=white,
+                    gain_e_per_dn=man.noise["gain_e_per_dn"],
+                    read_noise_dn=man.noise["read_noise_dn"], rng=rng)
+                write_dng(tmp / entry.path.name, raw, pattern=pattern, black_level=black,
+                          white_level=white, exposure_time=c.exposure_time, f_number=f_number,
+                          focal_length=man.camera["focal_length"],
+                          camera_white_balance=man.camera["white_balance"])
+                written.append(out_dir / entry.path.name)
+                _log(f"difstar synth: {entry.path.name}: t = {c.exposure_time:g} s, "
+                     f"saturated {np.mean(raw >= white) * 100:.2f} %")
+    return written
+
+
+# --------------------------------------------------------------------------- commands
+
+def _enable_x64():
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def _cmd_synth(a) -> int:
+    from difstar.io._manifest import load_manifest
+    from difstar.io._scene import SceneError
+
+    _enable_x64()
+    man = load_manifest(a.manifest)
+    if man.synthetic is None:
+        raise SceneError(f"{man.path}: field synthetic: missing; `difstar synth` needs the "
+                         "true parameters (synthetic.truth) and the frame size")
+    folders = {c.path.parent.resolve() for c in man.captures}
+    if len(folders) != 1:
+        raise SceneError(f"{man.path}: field captures: `difstar synth` writes all captures "
+                         f"into one folder; these name {len(folders)}")
+    missing_t = [c.name for c in man.captures if c.exposure_time is None]
+    if missing_t:
+        raise SceneError(f"{man.path}: field captures: synthetic captures need exposure_time "
+                         f"(missing for {missing_t})")
+    out = Path(a.out) if a.out else folders.pop()
+    synthesize(man, out, overwrite=a.overwrite)
+    _log(f"difstar synth: wrote {len(man.captures)} DNG files to {out}/")
+    return 0
+
+
+def _cmd_fit(a) -> int:
+    from difstar.io._manifest import load_manifest
+    from difstar.io._output import output_dir, write_json
+    from difstar.io._scene import SceneError
+
+    _enable_x64()
+    man = load_manifest(a.manifest)
+    if a.max_steps is not None:
+        man.solver["max_steps"] = a.max_steps
+    if a.recovery_study:
+        if man.synthetic is None:
+            raise SceneError(f"{man.path}: field synthetic: --recovery-study needs the truth")
+        out = Path(a.out) if a.out else man.folder / "recovery"
+        with output_dir(out, overwrite=a.overwrite) as tmp:
+            study = recovery_study(man, a.recovery_study, a.seed)
+            table = study_table(study)
+            write_json(tmp / "recovery.json", study)
+            (tmp / "recovery.md").write_text(table + "\n")
+        print(table)
+        return 0 if study["n_pass"] >= math.ceil(0.9 * a.recovery_study) else 1
+    out = Path(a.out) if a.out else man.folder / "result"
+    with output_dir(out, overwrite=a.overwrite) as tmp:
+        result, model, caps, fitter, u = fit_manifest(man)
+        files = write_outputs(tmp, result, model, caps, fitter, u, man.noise)
+    _print_summary(result)
+    _log(f"difstar fit: wrote {out}/ ({', '.join(files[:4])}, ...)")
+    return 0
+
+
+def _print_summary(result: dict) -> None:
+    print(f"{'parameter':<26} {'value':>40} {'std. error':>34}")
+    for k, v in result["parameters"].items():
+        if not v["free"]:
+            continue
+        val = np.atleast_1d(v["value"])
+        se = np.atleast_1d(v["stderr"])
+        print(f"{k:<26} {' '.join(f'{x:.6g}' for x in val):>40} "
+              f"{' '.join(f'{x:.2g}' for x in se):>34}" + ("  AT BOUND" if v["at_bound"] else ""))
+    c = result["convergence"]
+    print(f"χ² / dof = {c['reduced_chi2']:.4f} ({c['n_residuals']} pixels, {c['n_free']} free); "
+          f"total {result['timing_s']['total']:.1f} s "
+          f"(compile {result['timing_s']['compile']:.1f} s)")
+    if "truth_comparison" in result:
+        print("against the truth: " + ("all criteria pass" if
+                                       result["truth_comparison"]["all_pass"] else "FAIL"))
+
+
+def register(subparsers, name: str) -> None:
+    if name == "synth":
+        p = subparsers.add_parser("synth", help="write synthetic DNG captures for a fit manifest")
+        p.add_argument("manifest", help="fit manifest JSON with a `synthetic` block")
+        p.add_argument("--out", help="folder for the DNGs (default: the captures' folder)")
+        p.add_argument("--overwrite", action="store_true", help="replace an existing folder")
+        p.set_defaults(func=_cmd_synth)
+    elif name == "fit":
+        p = subparsers.add_parser("fit", help="fit optics, exposure and response to RAW captures")
+        p.add_argument("manifest", help="fit manifest JSON (data_schemas/fit_manifest.schema.json)")
+        p.add_argument("--out", help="output folder (default: <manifest folder>/result, or "
+                                     "/recovery with --recovery-study)")
+        p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+        p.add_argument("--max-steps", type=int, help="solver steps per stage")
+        p.add_argument("--recovery-study", type=int, metavar="N", default=0,
+                       help="fit from N starts perturbed by up to 20 %% (needs `synthetic`)")
+        p.add_argument("--seed", type=int, default=0, help="seed of the recovery study")
+        p.set_defaults(func=_cmd_fit)
+    else:
+        raise ValueError(f"difstar._fit_cli.register: unknown command {name!r}")

@@ -1,0 +1,193 @@
+"""Fit manifests: JSON checked against ``data_schemas/fit_manifest.schema.json``.
+
+Outer layer of ``difstar fit`` / ``difstar synth``: validates the document, checks what
+the schema cannot (names that refer to each other, array lengths, starts inside bounds),
+and builds the pieces :mod:`difstar._fit` takes. Errors are :class:`SceneError` naming
+the manifest file and the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from ._scene import SceneError, read_json, validate
+
+DEFAULT_WAVELENGTHS = (600e-9, 530e-9, 450e-9)
+
+
+@dataclasses.dataclass(frozen=True)
+class CaptureEntry:
+    name: str
+    path: Path
+    configuration: str
+    exposure_time: float | None
+    source_position: tuple[float, float]
+    roi_size: tuple[int, int]
+
+
+@dataclasses.dataclass(frozen=True)
+class Manifest:
+    path: Path
+    doc: dict
+    camera: dict
+    noise: dict
+    configurations: dict[str, dict]
+    captures: tuple[CaptureEntry, ...]
+    parameters: dict[str, dict]
+    grid: dict
+    solver: dict
+    synthetic: dict | None
+
+    @property
+    def folder(self) -> Path:
+        return self.path.parent
+
+    @property
+    def name(self) -> str:
+        return self.doc.get("name", self.path.parent.name)
+
+
+def load_manifest(path: str | Path) -> Manifest:
+    path = Path(path)
+    doc = read_json(path, what="fit manifest")
+    return manifest_from_dict(doc, path=path)
+
+
+def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifest:
+    """Validate ``doc`` and resolve it (``path`` names it in errors and anchors the
+    capture files)."""
+    from .._fit import param_shape
+
+    path = Path(path)
+    src = str(path)
+    validate(doc, "fit_manifest", source=src)
+    cam = dict(doc["camera"])
+    cam.setdefault("principal_separation", 0.0)
+    cam.setdefault("pupil_magnification", 1.0)
+    cam.setdefault("wavelengths", list(DEFAULT_WAVELENGTHS))
+    cam.setdefault("white_balance", [2.0, 1.0, 2.0])
+    noise = {"gain_e_per_dn": 1.0, "read_noise_dn": 2.0, **doc.get("noise", {})}
+
+    configs: dict[str, dict] = {}
+    for i, c in enumerate(doc["configurations"]):
+        if c["name"] in configs:
+            raise SceneError(f"{src}: field configurations/{i}/name: duplicate name {c['name']!r}")
+        configs[c["name"]] = dict(c)
+
+    default_roi = tuple(doc.get("roi_size", (128, 128)))
+    caps = []
+    names = set()
+    for i, c in enumerate(doc["captures"]):
+        where = f"{src}: field captures/{i}"
+        name = c.get("name", Path(c["file"]).stem)
+        if not all(ch.isalnum() or ch in "_.-" for ch in name):
+            raise SceneError(f"{where}/name: {name!r} may hold only letters, digits, _ . -")
+        if name in names:
+            raise SceneError(f"{where}/name: duplicate capture name {name!r}")
+        names.add(name)
+        if c["configuration"] not in configs:
+            raise SceneError(
+                f"{where}/configuration: {c['configuration']!r} is not one of the "
+                f"configurations {sorted(configs)}"
+            )
+        roi = tuple(c.get("roi_size", default_roi))
+        caps.append(CaptureEntry(
+            name=name, path=(path.parent / c["file"]), configuration=c["configuration"],
+            exposure_time=c.get("exposure_time"),
+            source_position=(float(c["source_position"][0]), float(c["source_position"][1])),
+            roi_size=(int(roi[0]), int(roi[1])),
+        ))
+    for cfg in configs:
+        sizes = {cp.roi_size for cp in caps if cp.configuration == cfg}
+        if len(sizes) > 1:
+            raise SceneError(
+                f"{src}: field captures: the captures of configuration {cfg!r} have different "
+                f"roi_size {sorted(sizes)}; one configuration needs one region size"
+            )
+        if not sizes:
+            raise SceneError(f"{src}: field configurations: {cfg!r} has no captures")
+
+    params: dict[str, dict] = {}
+    n = int(cam["blades"])
+    for name, p in doc["parameters"].items():
+        where = f"{src}: field parameters/{name}"
+        kind, _, ref = name.partition("/")
+        if kind in ("defocus", "source_offset") and ref not in configs:
+            raise SceneError(f"{where}: {ref!r} is not one of the configurations {sorted(configs)}")
+        if kind == "exposure_scale" and ref not in names:
+            raise SceneError(f"{where}: {ref!r} is not one of the capture names {sorted(names)}")
+        shape = param_shape(name, n)
+        start = _shaped(p["start"], shape, where + "/start")
+        free = bool(p.get("free", False))
+        lo = hi = None
+        if "bounds" in p:
+            lo = _shaped(p["bounds"][0], shape, where + "/bounds/0")
+            hi = _shaped(p["bounds"][1], shape, where + "/bounds/1")
+            if not np.all(lo < hi):
+                raise SceneError(f"{where}/bounds: need lo < hi element-wise; got {p['bounds']}")
+            if free and not np.all((start > lo) & (start < hi)):
+                raise SceneError(
+                    f"{where}/start: {p['start']} must lie strictly inside bounds {p['bounds']}"
+                )
+        scale = _shaped(p.get("perturb_scale", 0.0), shape, where + "/perturb_scale")
+        params[name] = {"shape": shape, "free": free, "start": start, "lo": lo, "hi": hi,
+                        "perturb_scale": scale}
+
+    syn = doc.get("synthetic")
+    if syn is not None:
+        truth = {}
+        for name, v in syn["truth"].items():
+            if name not in params:
+                raise SceneError(
+                    f"{src}: field synthetic/truth/{name}: not a parameter of this manifest"
+                )
+            truth[name] = _shaped(v, params[name]["shape"], f"{src}: field synthetic/truth/{name}")
+        missing = [k for k in params if k not in truth]
+        if missing:
+            raise SceneError(f"{src}: field synthetic/truth: missing values for {missing}")
+        syn = {"black_level": 600.0, "white_level": 16383, "seed": 0, "padding": 2.0,
+               **syn, "truth": truth}
+        fh, fw = syn["frame_size"]
+        for cp, c in zip(caps, doc["captures"]):
+            r, col = cp.source_position
+            if not (0 <= r < fh and 0 <= col < fw):
+                raise SceneError(
+                    f"{src}: field captures/{cp.name}/source_position: {[r, col]} is outside "
+                    f"the synthetic frame {fh} × {fw}"
+                )
+    return Manifest(
+        path=path, doc=doc, camera=cam, noise=noise, configurations=configs,
+        captures=tuple(caps), parameters=params, grid=dict(doc.get("grid", {})),
+        solver={"method": "lm", "max_steps": 100, "rtol": 1e-6, "atol": 1e-6,
+                "reweight": 1, **doc.get("solver", {})},
+        synthetic=syn,
+    )
+
+
+def _shaped(v, shape: tuple[int, ...], where: str) -> np.ndarray:
+    a = np.asarray(v, float)
+    if a.ndim == 0:
+        return np.broadcast_to(a, shape).copy()
+    if a.shape != shape:
+        raise SceneError(f"{where}: expected a number or an array of shape {list(shape)}; "
+                         f"got shape {list(a.shape)}")
+    return a.copy()
+
+
+def roi_origin(position, size, frame) -> tuple[int, int]:
+    """Top-left (row, col) of a ``size`` region centred on ``position``, both even (so
+    the region keeps the frame's Bayer layout) and inside the frame."""
+    out = []
+    for p, s, f in zip(position, size, frame):
+        if s > f:
+            raise ValueError(f"region of {size} px does not fit the {frame} px frame")
+        o = int(np.floor(p)) - s // 2
+        o -= o % 2
+        out.append(int(min(max(o, 0), (f - s) - (f - s) % 2)))
+    return out[0], out[1]
+
+
+__all__ = ["CaptureEntry", "Manifest", "load_manifest", "manifest_from_dict", "roi_origin"]

@@ -1,0 +1,121 @@
+"""Fit manifests: the schema, cross-references and errors that name the file and field."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from difstar.io._manifest import load_manifest, manifest_from_dict, roi_origin
+from difstar.io._scene import SceneError
+
+CAMPAIGN = Path(__file__).resolve().parents[1] / "fit" / "synthetic-paper-camera" / "manifest.json"
+
+BASE = {
+    "camera": {"focal_length": 0.0515, "pixel_pitch": 3.917e-6, "blades": 7},
+    "configurations": [{"name": "c", "focus_distance": 1.0, "object_distance": 1.0}],
+    "captures": [{"file": "a.dng", "configuration": "c", "source_position": [50, 60]}],
+    "parameters": {
+        "circumradius": {"free": True, "start": 1.2e-3, "bounds": [1e-3, 1.5e-3]},
+        "rotation": {"start": 0.1}, "source_radius": {"start": 5e-4},
+        "phi0": {"free": True, "start": [0.1, 0.1, 0.1], "bounds": [0.05, 0.2]},
+        "toe": {"start": 0.02}, "knee": {"start": 40},
+        "defocus/c": {"free": True, "start": 1e-3, "bounds": [-2e-3, 2e-3]},
+    },
+}
+
+
+def _err(doc, match):
+    with pytest.raises(SceneError, match=match):
+        manifest_from_dict(doc, path="/x/m.json")
+
+
+def test_campaign_manifest_is_valid():
+    man = load_manifest(CAMPAIGN)
+    assert len(man.captures) == 10 and set(man.configurations) == {"focused", "defocused"}
+    assert man.synthetic is not None
+    free = [k for k, p in man.parameters.items() if p["free"]]
+    assert {"circumradius", "rotation", "phi0", "toe", "knee", "defocus/defocused"} <= set(free)
+
+
+def test_defaults_and_shapes():
+    man = manifest_from_dict(copy.deepcopy(BASE), path="/x/m.json")
+    assert man.captures[0].name == "a" and man.captures[0].path == Path("/x/a.dng")
+    assert man.captures[0].roi_size == (128, 128)
+    assert man.parameters["toe"]["start"].shape == (3,)
+    assert man.parameters["phi0"]["lo"].tolist() == [0.05] * 3
+    assert man.noise == {"gain_e_per_dn": 1.0, "read_noise_dn": 2.0}
+    assert man.solver["method"] == "lm"
+
+
+def test_schema_errors_name_the_field():
+    d = copy.deepcopy(BASE)
+    del d["camera"]["blades"]
+    _err(d, r"m\.json: field camera: 'blades' is a required property")
+    d = copy.deepcopy(BASE)
+    d["parameters"]["rotation"] = {"free": True, "start": 0.1}
+    _err(d, r"field parameters/rotation: 'bounds' is a required property")
+    d = copy.deepcopy(BASE)
+    d["parameters"]["aperture"] = {"start": 1}
+    _err(d, r"field parameters")
+    d = copy.deepcopy(BASE)
+    d["captures"][0]["roi_size"] = [65, 64]
+    _err(d, r"field captures/0/roi_size/0")
+
+
+def test_cross_reference_errors():
+    d = copy.deepcopy(BASE)
+    d["captures"][0]["configuration"] = "nope"
+    _err(d, r"field captures/0/configuration: 'nope' is not one of the configurations")
+    d = copy.deepcopy(BASE)
+    d["parameters"]["defocus/nope"] = {"start": 0.0}
+    _err(d, r"field parameters/defocus/nope: 'nope' is not one of the configurations")
+    d = copy.deepcopy(BASE)
+    d["parameters"]["phi0"]["start"] = [0.1, 0.1]
+    _err(d, r"field parameters/phi0/start: expected a number or an array of shape \[3\]")
+    d = copy.deepcopy(BASE)
+    d["parameters"]["circumradius"]["start"] = 2e-3
+    _err(d, r"field parameters/circumradius/start: .* strictly inside bounds")
+    d = copy.deepcopy(BASE)
+    d["parameters"]["circumradius"]["bounds"] = [2e-3, 1e-3]
+    _err(d, r"field parameters/circumradius/bounds: need lo < hi")
+    d = copy.deepcopy(BASE)
+    d["captures"].append(dict(d["captures"][0]))
+    _err(d, r"field captures/1/name: duplicate capture name 'a'")
+
+
+def test_synthetic_block_errors():
+    d = copy.deepcopy(BASE)
+    d["synthetic"] = {"truth": {"circumradius": 1.2e-3}, "frame_size": [128, 128]}
+    _err(d, r"field synthetic/truth: missing values for")
+    d["synthetic"]["truth"] = {k: v["start"] for k, v in BASE["parameters"].items()}
+    d["synthetic"]["truth"]["extra"] = 1.0
+    _err(d, r"field synthetic/truth/extra: not a parameter")
+    del d["synthetic"]["truth"]["extra"]
+    d["captures"][0]["source_position"] = [500, 60]
+    _err(d, r"field captures/a/source_position: .* outside the synthetic frame")
+
+
+def test_unreadable_manifest(tmp_path):
+    with pytest.raises(SceneError, match="does not exist"):
+        load_manifest(tmp_path / "missing.json")
+    p = tmp_path / "bad.json"
+    p.write_text("{ not json")
+    with pytest.raises(SceneError, match=r"bad\.json: not valid JSON at line 1"):
+        load_manifest(p)
+    p.write_text(json.dumps(BASE))
+    assert load_manifest(p).folder == tmp_path
+
+
+def test_roi_origin_even_and_inside():
+    assert roi_origin((96.4, 97.0), (128, 128), (192, 192)) == (32, 32)
+    assert roi_origin((33, 31), (48, 48), (64, 64)) == (8, 6)
+    assert roi_origin((5, 190), (64, 64), (192, 192)) == (0, 128)
+    r, c = roi_origin((77.0, 51.0), (40, 40), (200, 201))
+    assert r % 2 == 0 and c % 2 == 0
+    with pytest.raises(ValueError, match="does not fit"):
+        roi_origin((10, 10), (64, 64), (32, 32))
+    assert np.isfinite(r)
