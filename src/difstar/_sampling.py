@@ -12,9 +12,26 @@ import math
 
 import jax.numpy as jnp
 
-from ._chain import Camera, Grid, Scene, geometry_of, needs_defocus
+from ._chain import Camera, Grid, Scene, check_sampling, geometry_of, needs_defocus
+from ._psf import SamplingError
 
 _FAST_RADICES = (2, 3, 5, 7)
+
+#: Accuracy target used when neither ``accuracy`` nor ``padding`` is given: relative RMS
+#: error of the linear image outside the source's core (DESIGN.md, "Measuring error").
+DEFAULT_ACCURACY = 1e-2
+
+# Calibration (BENCHMARKS.md, "Calibration"): relative RMS error outside the core against
+# padding (the guard band beyond the scene and blur, as a fraction of the crop), measured
+# in float64 for the paper's focused scene (against the exact polygon transform) and
+# defocused scene (against padding 10) on a 256 px crop. The envelope of both is bounded
+# by err ≤ _CAL_A · padding^(−_CAL_ALPHA) for padding in [0.1, 6], with a margin for
+# smaller crops (a 96 px crop measured 4.2e-3 at padding 4) (the FFT path's
+# spikes wrap around, so the error falls only about as 1/N);
+# padding_for_accuracy inverts it.
+_CAL_A = 2e-2
+_CAL_ALPHA = 1.0
+_MIN_PADDING = 0.05
 
 
 def fast_length(n: int) -> int:
@@ -53,33 +70,66 @@ def scene_extent(camera: Camera, scene: Scene) -> dict:
     return {"object_radius_px": obj, "blur_diameter_px": blur}
 
 
+def padding_for_accuracy(accuracy: float | None) -> float:
+    """The padding (fraction of the crop added as a guard band) whose measured error on
+    the paper's scenes is at most ``accuracy`` (relative RMS outside the core)."""
+    acc = DEFAULT_ACCURACY if accuracy is None else float(accuracy)
+    if not (acc > 0 and math.isfinite(acc)):
+        raise ValueError(f"accuracy must be a finite number > 0; got {accuracy!r}.")
+    return max(_MIN_PADDING, (_CAL_A / acc) ** (1.0 / _CAL_ALPHA))
+
+
 def choose_grid(
     camera: Camera,
     scene: Scene,
     *,
     crop: tuple[int, int],
-    padding: float = 1.0,
+    padding: float | None = None,
     n: int | None = None,
     oversample: int | None = None,
     raw_only: bool = False,
     scaling: str = "fresnel",
+    accuracy: float | None = None,
 ) -> Grid:
     """A grid satisfying the sampling rules for this camera and scene.
 
     n ≥ crop + object diameter + blur + ``padding`` × crop, rounded up to a fast FFT
     size: the crop's pixels then receive light only from PSF offsets inside the grid,
     and the aliases of the PSF's slowly decaying spikes land ``padding × crop`` away.
+    ``padding`` defaults to the one whose measured error outside the source's core is at
+    most ``accuracy`` (relative RMS on the linear image; default
+    :data:`DEFAULT_ACCURACY`; calibration in BENCHMARKS.md). The oversampling q is the
+    smallest that meets rule 1 (q = 1 where the pixel grid already samples the PSF).
+
     ``n`` and ``oversample`` override the choice; an override that breaks a rule raises
-    :class:`difstar.SamplingError` (checked in ``simulate``).
+    :class:`difstar.SamplingError` naming the rule and the value that would satisfy it.
     """
+    if padding is not None and accuracy is not None:
+        raise ValueError("choose_grid: give padding or accuracy, not both.")
+    if padding is None:
+        padding = padding_for_accuracy(accuracy)
+    elif not (float(padding) >= 0 and math.isfinite(float(padding))):
+        raise ValueError(f"choose_grid: padding must be a finite number >= 0; got {padding!r}.")
     ext = scene_extent(camera, scene)
     need_q = required_oversample(camera, scene)
     q = need_q if oversample is None else int(oversample)
+    span = max(crop) + 2 * ext["object_radius_px"] + ext["blur_diameter_px"]
+    overridden = n is not None or oversample is not None
     if n is None:
-        span = max(crop) + 2 * ext["object_radius_px"] + ext["blur_diameter_px"]
         n = fast_length(math.ceil(span + padding * max(crop)))
         n += n % 2
-    return Grid(
+    elif n < math.ceil(span):
+        need = math.ceil(span)
+        raise SamplingError(
+            f"difstar.choose_grid: rule 2 (field): n = {n} pixels cannot hold the crop "
+            f"{max(crop)} px plus the object ({2 * ext['object_radius_px']:.4g} px across) "
+            f"and its blur ({ext['blur_diameter_px']:.4g} px); the image would wrap around. "
+            f"Use n >= {need} (a fast size: {fast_length(need)}), or omit n."
+        )
+    grid = Grid(
         n=int(n), oversample=q, crop=tuple(int(c) for c in crop),
         use_defocus=needs_defocus(camera, scene), raw_only=raw_only, scaling=scaling,
     )
+    if overridden:
+        check_sampling(camera, scene, grid)  # rules 1, 3, 4 with the fix in the message
+    return grid

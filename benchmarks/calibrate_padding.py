@@ -1,0 +1,29 @@
+"""The calibration behind ``choose_grid(accuracy=...)``: error outside the core against
+padding, float64, for the paper's focused (vs the exact polygon transform) and defocused
+(vs padding 10) scenes on a CROP px crop.
+
+    python benchmarks/calibrate_padding.py [CROP]      (default 256; minutes on 2 cores)
+"""
+
+import sys
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+from difstar import _bench as b  # noqa: E402
+from difstar._sampling import choose_grid  # noqa: E402
+
+crop = (int(sys.argv[1]) if len(sys.argv) > 1 else 256,) * 2
+print("| scene | padding | N | N/crop | lin. err outside core |")
+print("|---|---|---|---|---|")
+for cfg in ("focused", "defocused"):
+    cam, sc = b.paper_case(cfg, source_radius=None if crop[0] > 300 else 1.5e-3)
+    mask = b.core_mask(crop, b._source_radius_px(cam, sc))
+    ref = (b.exact_focused_image(cam, sc, crop) if cfg == "focused"
+           else b.difstar_reference(cam, sc, crop, 10.0))
+    for pad in (0.1, 0.25, 0.5, 1, 1.5, 2, 3, 4, 6):
+        g = choose_grid(cam, sc, crop=crop, padding=pad, raw_only=True)
+        img = b.difstar_reference(cam, sc, crop, pad)
+        print(f"| {cfg} | {pad} | {g.n} | {g.n / crop[0]:.2f} | {b.rel_rms(img, ref, mask):.2e} |",
+              flush=True)

@@ -1,0 +1,48 @@
+"""``difstar bench``: speed against error (BENCHMARKS.md). Outer layer only."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+
+def register(subparsers, name: str) -> None:
+    p = subparsers.add_parser(
+        name, help="speed against error: NumPy paper baseline vs difstar settings",
+        description="Time and measure the error of the paper's method (NumPy, 3750² grid) "
+        "and difstar at several accuracy settings, on the paper's focused and defocused "
+        "scenes; prints a Markdown table (progress on stderr).")
+    p.add_argument("--quick", action="store_true",
+                   help="128 px crop, small source, few settings (about a minute)")
+    p.add_argument("--config", choices=("focused", "defocused"), action="append",
+                   help="scene(s) to run (default both)")
+    p.add_argument("--accuracy", type=float, action="append",
+                   help="difstar accuracy target(s) to time (default: the default and one tighter)")
+    p.add_argument("--padding", type=float, action="append",
+                   help="extra difstar padding settings for the speed-against-error curve")
+    p.add_argument("--baseline-n", type=int, help="grid of the NumPy baseline (default 3750)")
+    p.add_argument("--repeats", type=int, default=3, help="timed runs per setting (best kept)")
+    p.add_argument("--cache", default=".bench_cache",
+                   help="directory caching the float64 references (default .bench_cache)")
+    p.add_argument("--no-prysm", action="store_true", help="skip the prysm comparison")
+    p.add_argument("--json", help="also write the full result as JSON here")
+    p.set_defaults(func=_cmd_bench)
+
+
+def _cmd_bench(a) -> int:
+    from . import _bench
+
+    cache = Path(a.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    result = _bench.run(
+        quick=a.quick, configs=tuple(a.config or ("focused", "defocused")),
+        accuracies=tuple(a.accuracy) if a.accuracy else None,
+        paddings=tuple(a.padding) if a.padding else None, baseline_n=a.baseline_n,
+        cache=cache, repeats=a.repeats, with_prysm=not a.no_prysm,
+    )
+    result["command"] = "difstar bench " + " ".join(sys.argv[2:] if len(sys.argv) > 2 else [])
+    sys.stdout.write(_bench.table(result) + "\n")
+    if a.json:
+        Path(a.json).write_text(json.dumps(result, indent=1, default=str) + "\n")
+    return 0
