@@ -60,8 +60,10 @@ def mosaic(rgb: Float[Array, "3 h w"], pattern: str) -> Float[Array, "h w"]:
     Units are those of ``rgb`` (for difstar, normalised raw values ζ in [0, 1]).
     Differentiable: the gradient flows to the picked channel only.
     """
-    idx = jnp.asarray(channel_index(rgb.shape[1:], pattern))
-    return jnp.take_along_axis(rgb, idx[None], axis=0)[0]
+    # a masked sum, not take_along_axis: its transpose is a scatter-add that XLA
+    # constant-folds slowly on large mosaics
+    masks = jnp.asarray(bayer_masks_np(rgb.shape[1:], pattern), dtype=rgb.dtype)
+    return jnp.sum(rgb * masks, axis=0)
 
 
 def white_balance(
