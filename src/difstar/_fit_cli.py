@@ -185,7 +185,7 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = 
                 _log(f"{k:>6d} {loss:>14.6g} {size:>11.3g}" + ("  (done)" if done else ""))
 
         res = fitter.solve(u, args, max_steps=int(solver.get("max_steps", 100)),
-                           progress=progress)
+                           ftol=float(solver.get("ftol", 1e-6)), progress=progress)
         u = res.u
         stages.append({
             "label": label, "held": list(hold), "steps": res.steps, "accepted": res.accepted,
@@ -386,8 +386,17 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
                 written += [f"srgb_pred_{c.name}.png", f"srgb_obs_{c.name}.png"]
         # Fig. 5-style profiles on the brightest capture that is not saturated at the
         # profile radius: per channel, model lines, observation dots
-        i = len(model.captures_of(cfg.name)) - 1
-        c = model.captures_of(cfg.name)[i]
+        capl = model.captures_of(cfg.name)
+        pz_all = np.asarray(p.zeta)
+        h, w = pz_all.shape[-2:]
+        i = 0
+        for j, cj in enumerate(capl):  # the longest exposure unsaturated on the circle
+            ring = np.asarray(profile_circle(jnp.asarray(pz_all[j]),
+                                             (h // 2 + cj.base_offset[0],
+                                              w // 2 + cj.base_offset[1]), 0.335 * w / 2, 90))
+            if ring.max() < 0.95 and cj.exposure_time >= capl[i].exposure_time:
+                i = j
+        c = capl[i]
         obs_rgb = np.asarray(demosaic(jnp.asarray(caps[c.name]["zeta"]), cc.pattern,
                                       method="bilinear"))
         pz = np.asarray(p.zeta[i])
