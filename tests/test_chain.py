@@ -160,3 +160,35 @@ def test_paper_example_small_crop_end_to_end():
         assert cfa[96, 96] > 0.99  # the core saturates
         assert np.all(np.isfinite(np.asarray(pred.srgb)))
     assert float(pred.geometry.defocus) == pytest.approx(4.78e-3, abs=1e-5)
+
+
+def test_exact_path_chosen_in_focus_and_agrees_with_converged_fft():
+    camera, scene, grid = _small("focused", crop=(64, 64))
+    assert grid.method == "exact"
+    assert _small("defocused")[2].method == "fft"
+    exact = np.asarray(sim(camera, scene, grid).image)
+    fft_grid = choose_grid(camera, scene, crop=(64, 64), method="fft", padding=12.0)
+    ref = np.asarray(sim(camera, scene, fft_grid).image)
+    # the FFT path's error falls as ~2e-2/padding outside the core (BENCHMARKS.md)
+    yy, xx = np.mgrid[:64, :64] - 32
+    m = np.broadcast_to(np.hypot(yy, xx) > 12, ref.shape)
+    err = np.sqrt(np.sum((exact - ref)[m] ** 2) / np.sum(ref[m] ** 2))
+    assert err < 5e-3
+    np.testing.assert_allclose(exact.sum(), ref.sum(), rtol=2e-2)  # energy lost off-crop only
+
+
+def test_exact_path_refuses_defocus_and_has_finite_gradients():
+    camera, scene, grid = _small("focused", crop=(32, 32))
+    cam_d, scene_d, _ = _small("defocused", crop=(32, 32))
+    with pytest.raises(difstar.SamplingError, match="method='exact' is for in-focus"):
+        difstar.simulate(cam_d, scene_d, grid)
+
+    def f(rot):
+        pupil = difstar.RegularPolygon(7, camera.lens.pupil.circumradius, rot)
+        lens = eqx.tree_at(lambda l: l.pupil, camera.lens, pupil)
+        return jnp.sum(difstar.simulate(difstar.Camera(lens, camera.sensor), scene, grid).cfa)
+
+    g = jax.jit(jax.grad(f))(0.1)
+    eps = 1e-6
+    fd = (jax.jit(f)(0.1 + eps) - jax.jit(f)(0.1 - eps)) / (2 * eps)
+    assert np.isfinite(float(g)) and float(g) == pytest.approx(float(fd), rel=1e-4, abs=1e-8)

@@ -34,6 +34,7 @@ from ._pupil import AbstractPupil
 from ._sensor import Response, sensor
 
 PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+METHODS = ("fft", "exact")
 
 
 class Lens(eqx.Module):
@@ -162,7 +163,13 @@ class Scene(eqx.Module):
 class Grid(eqx.Module):
     """Static sampling: an n × n pixel simulation grid, q sub-samples per pixel, an output
     crop (rows, cols) centred on the grid, whether the defocus phase is computed, and
-    whether to render sRGB (``raw_only`` stops after the CFA)."""
+    whether to render sRGB (``raw_only`` stops after the CFA).
+
+    ``method="fft"`` is the paper's double transform on the n × n grid. ``method="exact"``
+    (in focus, polygonal pupils only) evaluates the PSF in closed form (Lee & Mittra) on
+    exactly the offsets the crop needs and convolves it linearly with the geometric image
+    on a ``source_window`` × ``source_window`` window: no grid, no aliasing, no wrap.
+    """
 
     n: int = eqx.field(static=True)
     oversample: int = eqx.field(static=True, default=1)
@@ -170,8 +177,17 @@ class Grid(eqx.Module):
     use_defocus: bool = eqx.field(static=True, default=True)
     raw_only: bool = eqx.field(static=True, default=False)
     scaling: str = eqx.field(static=True, default="fresnel")
+    method: str = eqx.field(static=True, default="fft")
+    source_window: int = eqx.field(static=True, default=0)
 
     def __check_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"Grid.method must be one of {METHODS}; got {self.method!r}.")
+        if self.method == "exact" and (self.source_window < 1 or self.source_window % 2 == 0):
+            raise ValueError(
+                "Grid.source_window must be an odd number of pixels holding the sources "
+                f"for method='exact'; got {self.source_window} (difstar.choose_grid sets it)."
+            )
         if self.n < 8:
             raise ValueError(f"Grid.n must be >= 8 pixels; got {self.n}.")
         if self.oversample < 1:
@@ -187,7 +203,8 @@ class Grid(eqx.Module):
 class Prediction(eqx.Module):
     """Everything ``simulate`` returns; images are cropped to ``grid.crop``.
 
-    psf: (3, h, w) per-channel PSF, each summing to 1 over the whole grid.
+    psf: (3, h, w) per-channel PSF on the crop; it sums to 1 over the whole grid
+        (method "fft") or over the whole plane (method "exact").
     image: (3, h, w) C, the linear image of the normalised object.
     zeta: (3, h, w) normalised pixel values per channel before the CFA.
     cfa: (h, w) the RAW mosaic ζ in [0, 1].
@@ -255,6 +272,9 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     check_sampling(camera, scene, grid)
     g = geometry_of(camera, scene)
     sen = camera.sensor
+    if grid.method == "exact":
+        psfs, image = _exact_image(camera, scene, grid, g)
+        return _finish(camera, scene, grid, g, psfs, image)
     n = grid.n
     b = geometric_image(
         scene.sources, magnification=g.magnification, pixel_pitch=sen.pixel_pitch, shape=(n, n)
@@ -267,6 +287,29 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
         return _crop(p, grid.crop), _crop(c, grid.crop)
 
     psfs, image = jax.vmap(one)(sen.wavelengths, b_ft)
+    return _finish(camera, scene, grid, g, psfs, image)
+
+
+def _exact_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
+    from ._mft import focused_image
+    from ._pupil import Polygon, RegularPolygon
+
+    pupil = camera.lens.pupil
+    if not isinstance(pupil, (Polygon, RegularPolygon)):
+        raise ValueError(
+            f"Grid.method='exact' needs a Polygon or RegularPolygon pupil; got "
+            f"{type(pupil).__name__}. Use method='fft'."
+        )
+    w = grid.source_window
+    b = geometric_image(scene.sources, magnification=g.magnification,
+                        pixel_pitch=camera.sensor.pixel_pitch, shape=(w, w))
+    return focused_image(pupil.vertices, b, camera.sensor.wavelengths, z_image=g.z_exit_pupil,
+                         pixel_pitch=camera.sensor.pixel_pitch, crop=grid.crop,
+                         oversample=grid.oversample)
+
+
+def _finish(camera: Camera, scene: Scene, grid: Grid, g: Geometry, psfs, image) -> Prediction:
+    sen = camera.sensor
     image = image + scene.background[:, None, None]
     zeta = sensor(image, exposure_time=scene.exposure_time, phi0=sen.phi0, response=sen.response)
     cfa = mosaic(zeta, sen.pattern)
@@ -305,8 +348,17 @@ def check_sampling(camera: Camera, scene: Scene, grid: Grid) -> None:
                 pixel_pitch=camera.sensor.pixel_pitch, oversample=grid.oversample,
                 n=grid.n * grid.oversample, scaling=grid.scaling,
             )
+            # the exact path has no grid: only pixel integration (rule 1) applies
+            if grid.method == "fft" or m.startswith("rule 1")
         ]
-    if not grid.use_defocus and abs(dz) > 0:
+    if grid.method == "exact" and abs(dz) > 0:
+        peak = math.pi * r * r * abs(dz) / (min(lams) * z_r * (z_r - dz))
+        if peak > 1e-2:
+            fails.append(
+                f"Grid.method='exact' is for in-focus scenes, but Δz = {dz * 1e3:.4g} mm "
+                f"gives {peak:.3g} rad of defocus phase; use method='fft'."
+            )
+    if grid.method == "fft" and not grid.use_defocus and abs(dz) > 0:
         # Without the phase the model is wrong by the defocus's peak phase; allow only
         # a negligible amount (< 0.01 rad at the pupil edge).
         peak = math.pi * r * r * abs(dz) / (min(lams) * z_r * (z_r - dz))

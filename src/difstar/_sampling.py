@@ -90,6 +90,7 @@ def choose_grid(
     raw_only: bool = False,
     scaling: str = "fresnel",
     accuracy: float | None = None,
+    method: str | None = None,
 ) -> Grid:
     """A grid satisfying the sampling rules for this camera and scene.
 
@@ -103,7 +104,34 @@ def choose_grid(
 
     ``n`` and ``oversample`` override the choice; an override that breaks a rule raises
     :class:`difstar.SamplingError` naming the rule and the value that would satisfy it.
+
+    ``method`` (default: chosen) is "exact" for an in-focus scene with a polygonal pupil
+    — the closed-form PSF on exactly the offsets the crop needs, no grid and no aliasing
+    (then ``n``, ``padding`` and ``accuracy`` do not apply) — and "fft" otherwise.
     """
+    from ._pupil import Polygon, RegularPolygon
+
+    in_focus = not needs_defocus(camera, scene)
+    exact_ok = in_focus and isinstance(camera.lens.pupil, (Polygon, RegularPolygon))
+    if method is None:
+        method = "exact" if exact_ok and n is None and padding is None and accuracy is None else "fft"
+    if method == "exact":
+        if not exact_ok:
+            raise ValueError(
+                "choose_grid: method='exact' needs an in-focus scene and a Polygon or "
+                "RegularPolygon pupil; use method='fft'."
+            )
+        ext = scene_extent(camera, scene)
+        window = 2 * math.ceil(ext["object_radius_px"] + 1) + 1
+        q = required_oversample(camera, scene) if oversample is None else int(oversample)
+        grid = Grid(n=max(crop), oversample=q, crop=tuple(int(c) for c in crop),
+                    use_defocus=False, raw_only=raw_only, scaling=scaling, method="exact",
+                    source_window=window)
+        if oversample is not None:
+            check_sampling(camera, scene, grid)
+        return grid
+    if method != "fft":
+        raise ValueError(f"choose_grid: method must be 'exact', 'fft' or None; got {method!r}.")
     if padding is not None and accuracy is not None:
         raise ValueError("choose_grid: give padding or accuracy, not both.")
     if padding is None:

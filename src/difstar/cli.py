@@ -58,13 +58,18 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
         gopt["crop"] = list(crop)
     crop_t = tuple(gopt.get("crop", (512, 512)))
     grid = choose_grid(
-        camera, scene, crop=crop_t, padding=gopt.get("padding", 1.0), n=gopt.get("n"),
+        camera, scene, crop=crop_t, padding=gopt.get("padding"), n=gopt.get("n"),
         oversample=gopt.get("oversample"), raw_only=gopt.get("raw_only", False),
-        scaling=gopt.get("scaling", "fresnel"),
+        scaling=gopt.get("scaling", "fresnel"), accuracy=gopt.get("accuracy"),
+        method=gopt.get("method"),
     )
     difstar.check_sampling(camera, scene, grid)
-    _log(f"difstar: grid n = {grid.n}, oversample = {grid.oversample}, crop = {grid.crop}, "
-         f"defocus phase {'on' if grid.use_defocus else 'off (Δz negligible)'}")
+    if grid.method == "exact":
+        _log(f"difstar: exact in-focus path (closed-form PSF, no grid), oversample = "
+             f"{grid.oversample}, crop = {grid.crop}, source window {grid.source_window} px")
+    else:
+        _log(f"difstar: FFT grid n = {grid.n}, oversample = {grid.oversample}, crop = "
+             f"{grid.crop}, defocus phase {'on' if grid.use_defocus else 'off (Δz negligible)'}")
     run = eqx.filter_jit(difstar.simulate)
     t0 = time.perf_counter()
     _log("difstar: compiling the chain ...")
@@ -90,6 +95,7 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
             "working_f_number": float(g.working_f_number),
         },
         "grid": {
+            "method": grid.method, "source_window": grid.source_window,
             "n": grid.n, "oversample": grid.oversample, "crop": list(grid.crop),
             "pixel_pitch_m": camera.sensor.pixel_pitch,
             "grid_pitch_m": camera.sensor.pixel_pitch / grid.oversample,
