@@ -57,7 +57,9 @@ def study_setup(*, blades: int = 9, f_number: float = 8.0, quick: bool = False):
 
 
 def measure(family, setup, params, opts) -> dict:
-    """Every reported measure of one design (concrete floats)."""
+    """Every reported measure of one design (concrete floats), with its focused and
+    defocused PSFs and its outline."""
+    import equinox as eqx
     import jax.numpy as jnp
 
     from difstar._design import (
@@ -68,28 +70,34 @@ def measure(family, setup, params, opts) -> dict:
         spike_length,
     )
 
-    pu = family.pupil(params)
-    img = setup.focused(pu)
-    bok = setup.defocused(pu)
-    d = pu.chord_normal_angles()
     rb = setup.blur_radius(family.area)
     rc, hw = opts["core_radius"], opts["half_width"]
-    return {
-        "curvature": float(params.curvature),
-        "max_abs_radial": float(jnp.max(jnp.abs(params.radial))),
-        "max_abs_angular_rad": float(jnp.max(jnp.abs(params.angular))),
-        "halo_anisotropy": float(halo_anisotropy(img, core_radius=rc)),
-        "spike_wedge_energy": float(spike_energy(img, d, core_radius=rc, half_width=hw)),
-        "spike_wedge_excess": float(
-            spike_energy(img, d, core_radius=rc, half_width=hw, excess=True)),
-        "spike_length_px": float(spike_length(img, d, half_width=hw, core_radius=rc)),
-        "core_energy": float(core_energy(img, core_radius=rc)),
-        "bokeh_cv": float(bokeh_nonuniformity(bok, radius=rb)),
-        "bokeh_peak": float(bokeh_nonuniformity(bok, radius=rb, measure="peak")),
-        "area_rel_error": float(pu.area() / family.area - 1),
-        "convexity_margin_rad": float(pu.convexity_margin()),
-        "circumradius_m": float(pu.circumradius),
-    }
+
+    @eqx.filter_jit
+    def values(params):
+        pu = family.pupil(params)
+        img = setup.focused(pu)
+        bok = setup.defocused(pu)
+        d = pu.chord_normal_angles()
+        return {
+            "curvature": params.curvature,
+            "max_abs_radial": jnp.max(jnp.abs(params.radial)),
+            "max_abs_angular_rad": jnp.max(jnp.abs(params.angular)),
+            "halo_anisotropy": halo_anisotropy(img, core_radius=rc),
+            "spike_wedge_energy": spike_energy(img, d, core_radius=rc, half_width=hw),
+            "spike_wedge_excess": spike_energy(img, d, core_radius=rc, half_width=hw,
+                                               excess=True),
+            "spike_length_px": spike_length(img, d, half_width=hw, core_radius=rc),
+            "core_energy": core_energy(img, core_radius=rc),
+            "bokeh_cv": bokeh_nonuniformity(bok, radius=rb),
+            "bokeh_peak": bokeh_nonuniformity(bok, radius=rb, measure="peak"),
+            "area_rel_error": pu.area() / family.area - 1,
+            "convexity_margin_rad": pu.convexity_margin(),
+            "circumradius_m": pu.circumradius,
+        }, img, bok, pu.outline()
+
+    out, img, bok, outline = values(params)
+    return {k: float(v) for k, v in out.items()}, img, bok, outline
 
 
 def iris_study(
@@ -146,10 +154,9 @@ def iris_study(
     psfs = {}
     outlines = {}
     for name, p in designs.items():
-        rows[name] = measure(family, setup, p, opts)
-        pu = family.pupil(p)
-        psfs[name] = (np.asarray(setup.focused(pu)), np.asarray(setup.defocused(pu)))
-        outlines[name] = np.asarray(pu.outline())
+        rows[name], img, bok, outline = measure(family, setup, p, opts)
+        psfs[name] = (np.asarray(img), np.asarray(bok))
+        outlines[name] = np.asarray(outline)
     return {
         "config": {
             "blades": blades, "f_number": f_number, "open_area_m2": family.area,
