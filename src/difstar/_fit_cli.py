@@ -67,7 +67,7 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
                     tuple(float(v) for v in base_offsets[c.name]))
         for c in man.captures
     )
-    pad = man.grid.get("padding") if padding is None else padding
+    pad = man.grid.get("padding", 1.0) if padding is None else padding
     configs = []
     for name, cfg in man.configurations.items():
         crop = tuple(crops[name])
