@@ -106,3 +106,22 @@ def test_nonconvex_polygon_area_exact():
         difstar.RegularPolygon(2, 1.0)
     with pytest.raises(ValueError, match="circumradius must be > 0"):
         difstar.RegularPolygon(6, -1.0)
+
+
+def test_vertical_edge_keeps_its_gradient():
+    # A 7-gon at rotation 0 has an exactly vertical edge (x = −r cos(π/7)); tilting it by
+    # moving one of its vertices in x changes the area by (edge height)/2 per unit.
+    cell = 0.05
+    x, y = _grid(64, cell)
+    v0 = np.asarray(difstar.RegularPolygon(7, 1.0, 0.0).vertices)
+    k = 3  # vertex 3 → 4 is the vertical edge
+    assert v0[k, 0] == pytest.approx(v0[k + 1, 0], abs=1e-12)
+
+    def area(t):
+        v = jnp.asarray(v0).at[k, 0].add(t)
+        return jnp.sum(difstar.Polygon(v).coverage(x, y, cell)) * cell**2
+
+    g = float(jax.grad(area)(0.0))
+    # shoelace: ∂A/∂x_k = (y_{k+1} − y_{k−1}) / 2
+    expect = 0.5 * (v0[k + 1, 1] - v0[k - 1, 1])
+    assert g == pytest.approx(expect, rel=1e-9)

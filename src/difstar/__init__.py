@@ -14,6 +14,10 @@ from ._pupil import (
     RegularPolygon as RegularPolygon,
     Spiders as Spiders,
 )
+from ._pupil_curved import (
+    CurvedIris as CurvedIris,
+    curved_iris_from_area as curved_iris_from_area,
+)
 from ._geometry import Geometry as Geometry, camera_geometry as camera_geometry
 from ._atf import atf as atf
 from ._psf import SamplingError as SamplingError, psf as psf, sampling_report as sampling_report
@@ -53,5 +57,19 @@ from ._chain import (
 )
 from ._examples import paper_camera as paper_camera, paper_grid as paper_grid
 from ._sampling import choose_grid as choose_grid
+
+from ._design import (
+    Box as Box,
+    DesignResult as DesignResult,
+    IrisFamily as IrisFamily,
+    IrisParams as IrisParams,
+    PSFSetup as PSFSetup,
+    bokeh_nonuniformity as bokeh_nonuniformity,
+    core_energy as core_energy,
+    design as design,
+    halo_anisotropy as halo_anisotropy,
+    image_mismatch as image_mismatch,
+    spike_energy as spike_energy,
+)
 
 __version__ = "0.1.0"

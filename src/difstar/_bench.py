@@ -293,9 +293,24 @@ def fft_floor(grid, dtype, repeats: int = 3) -> float:
     import jax
     import jax.numpy as jnp
 
+    key = jax.random.PRNGKey(0)
+    if grid.method == "exact":
+        # the exact path's only FFTs: the linear convolution of PSF and geometric image
+        from ._sampling import fast_length
+
+        hb = grid.source_window
+        nh, nw = (fast_length(c + 2 * (hb - 1)) for c in grid.crop)
+        p = jax.random.normal(key, (3, nh, nw), dtype)
+
+        @jax.jit
+        def conv(p):
+            spec = jnp.fft.rfft2(p) * jnp.fft.rfft2(p[:, :hb, :hb], s=(nh, nw))
+            return jnp.fft.irfft2(spec, s=(nh, nw))
+
+        jax.block_until_ready(conv(p))
+        return _best(lambda: conv(p), repeats)
     n, m = grid.n, grid.n * grid.oversample
     cdt = jnp.result_type(dtype, jnp.complex64)
-    key = jax.random.PRNGKey(0)
     a = jax.random.normal(key, (3, m, m), dtype).astype(cdt)
     b = jax.random.normal(key, (3, n, n), dtype)
     c = jax.random.normal(key, (3, n, n), dtype)
@@ -342,73 +357,6 @@ def time_difstar(camera, scene, grid, repeats: int = 3):
     timing = Timing(t_compile, t_fwd, t_gcompile, t_grad, fft_floor(grid, dtype, repeats),
                     _mem(compiled), _mem(gcompiled))
     return pred, timing
-
-
-def time_focused_fast_path(camera, scene, crop, repeats: int = 3):
-    """The in-focus scene through ``_mft.focused_image`` plus the same post-processing as
-    ``simulate`` (sensor, CFA, sRGB); forward and gradient timed like ``time_difstar``.
-    The 'FFT floor' here is the zero-padded linear convolution's FFTs."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-
-    import difstar
-    from ._mft import focused_image
-    from ._sampling import fast_length
-
-    p = camera.sensor.pixel_pitch
-    rad = int(math.ceil(_source_radius_px(camera, scene))) + 2
-    nb = 2 * rad + 1
-
-    def simulate_fast(cam, sc):
-        g = difstar.geometry_of(cam, sc)
-        b = difstar.geometric_image(sc.sources, magnification=g.magnification, pixel_pitch=p,
-                                    shape=(nb, nb))
-        _, img = focused_image(cam.lens.pupil.vertices, b, cam.sensor.wavelengths,
-                               z_image=g.z_exit_pupil, pixel_pitch=p, crop=crop)
-        return img
-
-    def full(cam, sc):
-        img = simulate_fast(cam, sc)
-        sen = cam.sensor
-        zeta = difstar._sensor.sensor(img + sc.background[:, None, None],
-                                      exposure_time=sc.exposure_time, phi0=sen.phi0,
-                                      response=sen.response)
-        from ._cfa import mosaic
-        from ._colour import render_srgb
-
-        cfa = mosaic(zeta, sen.pattern)
-        return img, cfa, render_srgb(cfa, sen.pattern, white_balance=sen.white_balance,
-                                     matrix=sen.colour_matrix)
-
-    fwd = eqx.filter_jit(full)
-    t0 = time.perf_counter()
-    compiled = fwd.lower(camera, scene).compile()
-    t_compile = time.perf_counter() - t0
-    img, cfa, _ = jax.block_until_ready(compiled(camera, scene))
-    t_fwd = _best(lambda: compiled(camera, scene), repeats)
-    target = jax.lax.stop_gradient(cfa) * 0.9
-
-    def loss(cs):
-        return jnp.mean((full(cs[0], cs[1])[1] - target) ** 2)
-
-    vg = eqx.filter_jit(eqx.filter_value_and_grad(loss))
-    t0 = time.perf_counter()
-    gcompiled = vg.lower((camera, scene)).compile()
-    t_gcompile = time.perf_counter() - t0
-    jax.block_until_ready(gcompiled((camera, scene)))
-    t_grad = _best(lambda: gcompiled((camera, scene)), repeats)
-    n = fast_length(crop[0] + 2 * nb - 2)
-    from ._chain import Grid
-
-    floor = fft_floor(Grid(n=n, oversample=1, crop=crop), camera.sensor.phi0.dtype, repeats)
-    floor -= 0  # the field FFT of fft_floor has no counterpart here: report it as is
-    return img, {"n": n, "forward_s": t_fwd, "compile_s": t_compile, "grad_s": t_grad,
-                 "grad_compile_s": t_gcompile, "fft_floor_s": floor,
-                 "peak_mb": _mem(compiled) / 2**20, "grad_peak_mb": _mem(gcompiled) / 2**20}
-
-
-# --------------------------------------------------------------------------- prysm
 
 
 def prysm_comparison(*, crop: int = 256, npup: int = 1024, wavelength: float = 530e-9,
@@ -577,11 +525,11 @@ def run(*, quick: bool = False, configs=("focused", "defocused"), accuracies=Non
 
         camera32 = _to_float32(camera)
         scene32 = _to_float32(scene)
-        settings = [("default" if a == DEFAULT_ACCURACY else f"accuracy={a:g}",
+        settings = [("FFT default" if a == DEFAULT_ACCURACY else f"FFT accuracy={a:g}",
                      padding_for_accuracy(a), a) for a in accuracies]
-        settings += [(f"padding={pd:g}", pd, None) for pd in paddings]
+        settings += [(f"FFT padding={pd:g}", pd, None) for pd in paddings]
         for name, pad, acc in settings:
-            grid = choose_grid(camera, scene, crop=crop, padding=pad)
+            grid = choose_grid(camera, scene, crop=crop, padding=pad, method="fft")
             _log(f"  difstar {name}: n = {grid.n}, q = {grid.oversample} ...")
             pred, t = time_difstar(camera32, scene32, grid, repeats)
             le, se = errors(np.asarray(pred.image, float))
@@ -592,15 +540,17 @@ def run(*, quick: bool = False, configs=("focused", "defocused"), accuracies=Non
             _log(f"    fwd {t.forward_s:.3f} s (compile {t.compile_s:.1f}), grad "
                  f"{t.grad_s:.3f} s, FFT floor {t.fft_floor_s:.3f} s, lin err {le:.3g}, "
                  f"sRGB MSE {se:.3g}")
-        if config == "focused":
-            _log("  difstar exact in-focus path (_mft.focused_image) ...")
-            img, t = time_focused_fast_path(camera32, scene32, crop, repeats)
-            le, se = errors(np.asarray(img, float))
-            rows.append(Row(config, "difstar exact in-focus path (proposed)", t.pop("n"), 1,
-                            None, le, se, t["forward_s"], t["compile_s"], t["grad_s"],
-                            t["grad_compile_s"], t["fft_floor_s"], t["peak_mb"],
-                            t["grad_peak_mb"]))
-            _log(f"    fwd {t['forward_s']:.3f} s, grad {t['grad_s']:.3f} s, lin err {le:.3g}")
+        default = choose_grid(camera, scene, crop=crop)
+        if default.method == "exact":  # in focus: the default is the closed-form path
+            _log("  difstar default: exact in-focus path (no grid) ...")
+            pred, t = time_difstar(camera32, scene32, default, repeats)
+            le, se = errors(np.asarray(pred.image, float))
+            rows.append(Row(config, "difstar default (exact in-focus path)",
+                            default.crop[0] + 2 * (default.source_window - 1), 1, None, le, se,
+                            t.forward_s, t.compile_s, t.grad_s, t.grad_compile_s,
+                            t.fft_floor_s, t.peak_bytes / 2**20, t.grad_peak_bytes / 2**20))
+            _log(f"    fwd {t.forward_s:.3f} s, grad {t.grad_s:.3f} s, FFT floor "
+                 f"{t.fft_floor_s:.3f} s, lin err {le:.3g}, sRGB MSE {se:.3g}")
     result["rows"] = [asdict(r) for r in rows]
     if with_prysm:
         _log("difstar bench: prysm comparison (in-focus 7-blade PSF) ...")

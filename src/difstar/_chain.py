@@ -70,7 +70,7 @@ class Lens(eqx.Module):
         if not isinstance(pupil, AbstractPupil):
             raise TypeError(
                 f"Lens.pupil must be a difstar pupil (RegularPolygon, Polygon, Circle, "
-                f"Obstructed, Mask); got {type(pupil).__name__}."
+                f"CurvedIris, Obstructed, Mask); got {type(pupil).__name__}."
             )
         self.pupil = pupil
         self.focal_length = jnp.asarray(focal_length, dtype=float)

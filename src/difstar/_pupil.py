@@ -54,55 +54,74 @@ def halfplane_coverage(s: Array, nx: Array, ny: Array, cell: float | Array) -> A
     return jnp.where(w <= 0, 1.0, out)
 
 
-def _ramp_integral(t, h):
+def _ramp_integral(t: Array, h) -> Array:
     """G(t) = ∫_{-∞}^t clamp(τ, 0, h) dτ."""
     tc = jnp.clip(t, 0.0, h)
     return 0.5 * tc * tc + h * jnp.maximum(t - h, 0.0)
 
 
-def polygon_coverage(vertices: Float[Array, "n 2"], x: Array, y: Array, cell) -> Array:
-    """Exact area coverage of a simple counter-clockwise polygon on square cells.
+def edge_coverage(x0, y0, x1, y1, x: Array, y: Array, cell) -> Array:
+    """One straight edge's term of ``_pupil.polygon_coverage`` (Green's theorem): summed
+    over a closed counter-clockwise outline it gives the exact covered fraction of each
+    cell. ``x`` (1, W) and ``y`` (H, 1) are cell centres.
 
-    By Green's theorem, the area of P ∩ cell is −∮ F dx with
+    By Green's theorem the area of P ∩ cell is −∮ F dx with
     F = 1[x in the cell's column] · clamp(y − y_bottom, 0, cell), whose integral along a
-    straight edge has a closed form (the ramp's antiderivative G). Exact for convex and
-    non-convex polygons; continuous and piecewise polynomial in the vertices, so it is
-    differentiable with respect to them (finite gradients on grid lines too).
-    ``x`` has shape (1, W), ``y`` shape (H, 1): cell centres.
+    straight edge has a closed form (the ramp's antiderivative G). The edge is
+    parametrised along its length so the term stays differentiable when the edge is
+    exactly vertical (its value is 0 there, its derivative in x is not).
     """
     xa = x - 0.5 * cell
     xb = x + 0.5 * cell
     ya = y - 0.5 * cell
-    edges = jnp.concatenate([vertices, jnp.roll(vertices, -1, axis=0)], axis=1)  # (n, 4)
+    dxe = x1 - x0
+    vertical = dxe == 0
+    safe = jnp.where(vertical, 1.0, dxe)
+    xc0 = jnp.clip(x0, xa, xb)  # the part of the edge inside each cell column
+    xc1 = jnp.clip(x1, xa, xb)
+    signed_length = xc1 - xc0  # (1, W), negative for an edge running towards −x
+    s0 = jnp.where(vertical, 0.0, (xc0 - x0) / safe)
+    s1 = jnp.where(vertical, 1.0, (xc1 - x0) / safe)
+    t1 = y0 + (y1 - y0) * s0 - ya  # (H, W): heights above each cell's bottom
+    t2 = y0 + (y1 - y0) * s1 - ya
+    dt = t2 - t1
+    small = jnp.abs(dt) < 1e-3 * cell
+    # G's divided difference; G is piecewise quadratic, so where dt is tiny the
+    # derivative at the midpoint is exact within one piece.
+    dd = (_ramp_integral(t2, cell) - _ramp_integral(t1, cell)) / jnp.where(small, 1.0, dt)
+    mid = jnp.clip(0.5 * (t1 + t2), 0.0, cell)
+    return -signed_length * jnp.where(small, mid, dd) / (cell * cell)
 
-    def edge_term(total, e):
-        x0, y0, x1, y1 = e[0], e[1], e[2], e[3]
-        dxe = x1 - x0
-        vertical = dxe == 0
-        slope = (y1 - y0) / jnp.where(vertical, 1.0, dxe)
-        lo = jnp.minimum(x0, x1)
-        hi = jnp.maximum(x0, x1)
-        c1 = jnp.clip(xa, lo, hi)
-        c2 = jnp.clip(xb, lo, hi)
-        length = c2 - c1  # (1, W)
-        t1 = y0 + slope * (c1 - x0) - ya  # (H, W)
-        t2 = y0 + slope * (c2 - x0) - ya
-        dt = t2 - t1
-        small = jnp.abs(dt) < 1e-3 * cell
-        # G's divided difference; G is piecewise quadratic, so where dt is tiny the
-        # derivative at the midpoint is exact within one piece.
-        dd = (_ramp_integral(t2, cell) - _ramp_integral(t1, cell)) / jnp.where(small, 1.0, dt)
-        mid = jnp.clip(0.5 * (t1 + t2), 0.0, cell)
-        integral = length * jnp.where(small, mid, dd)
-        return total - jnp.where(vertical, 0.0, jnp.sign(dxe)) * integral, None
 
+def outline_coverage(
+    v0: Float[Array, "e 2"], v1: Float[Array, "e 2"], x: Array, y: Array, cell
+) -> Array:
+    """Exact area coverage of the closed outline made of the edges v0[i] → v1[i].
+
+    A scan over the edges, one edge's term per step (checkpointed): compile time and
+    reverse-mode memory do not grow with the number of edges, unlike an unrolled loop.
+    """
     shape = jnp.broadcast_shapes(x.shape, y.shape)
-    total0 = jnp.zeros(shape, dtype=jnp.result_type(x, y, vertices))
-    # a scan over edges keeps the compiled graph the same size for any edge count;
-    # rematerialising each edge's term in the backward pass (checkpoint) is cheaper than
-    # storing its many full-grid intermediates: 4x faster gradients at n = 1024
-    total, _ = jax.lax.scan(jax.checkpoint(edge_term), total0, edges)
-    return total / (cell * cell)
+    dtype = jnp.result_type(x, y, v0)
+
+    @jax.checkpoint
+    def term(e):
+        return edge_coverage(e[0], e[1], e[2], e[3], x, y, cell)
+
+    def step(total, e):
+        return total + term(e), None
+
+    edges = jnp.concatenate([v0, v1], axis=1)
+    total, _ = jax.lax.scan(step, jnp.zeros(shape, dtype), edges)
+    return total
+
+
+def polygon_coverage(vertices: Float[Array, "n 2"], x: Array, y: Array, cell) -> Array:
+    """Exact area coverage of a simple counter-clockwise polygon on square cells centred
+    at ``x`` (1, W) and ``y`` (H, 1). Exact for convex and non-convex polygons;
+    continuous and piecewise polynomial in the vertices, so it is differentiable with
+    respect to them (finite gradients on grid lines and for vertical edges too)."""
+    return outline_coverage(vertices, jnp.roll(vertices, -1, axis=0), x, y, cell)
 
 
 def convex_polygon_coverage(vertices: Float[Array, "n 2"], x: Array, y: Array, cell) -> Array:

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._custom_types import Array, Float
-from ._pupil import AbstractPupil
+from ._pupil import AbstractPupil, _safe_norm, outline_coverage
 
 
 def _sinc(a: Array) -> Array:
@@ -68,72 +68,6 @@ def segment_area(chord: Array, half_angle: Array) -> Array:
     return chord * chord * half_angle * _x_minus_sin_over_cube(2 * half_angle) / _sinc(
         half_angle
     ) ** 2
-
-
-def _ramp_integral(t: Array, h) -> Array:
-    """G(t) = ∫_{-∞}^t clamp(τ, 0, h) dτ."""
-    tc = jnp.clip(t, 0.0, h)
-    return 0.5 * tc * tc + h * jnp.maximum(t - h, 0.0)
-
-
-def edge_coverage(x0, y0, x1, y1, x: Array, y: Array, cell) -> Array:
-    """One straight edge's term of ``_pupil.polygon_coverage`` (Green's theorem): summed
-    over a closed counter-clockwise outline it gives the exact covered fraction of each
-    cell. ``x`` (1, W) and ``y`` (H, 1) are cell centres.
-
-    The same formula as ``polygon_coverage``, parametrised along the edge so that it stays
-    differentiable when the edge is exactly vertical (there ``polygon_coverage`` zeroes
-    the term and with it the derivative with respect to the edge's x position).
-    """
-    xa = x - 0.5 * cell
-    xb = x + 0.5 * cell
-    ya = y - 0.5 * cell
-    dxe = x1 - x0
-    vertical = dxe == 0
-    safe = jnp.where(vertical, 1.0, dxe)
-    xc0 = jnp.clip(x0, xa, xb)  # the part of the edge inside each cell column
-    xc1 = jnp.clip(x1, xa, xb)
-    signed_length = xc1 - xc0  # (1, W), negative for an edge running towards −x
-    s0 = jnp.where(vertical, 0.0, (xc0 - x0) / safe)
-    s1 = jnp.where(vertical, 1.0, (xc1 - x0) / safe)
-    t1 = y0 + (y1 - y0) * s0 - ya  # (H, W): heights above each cell's bottom
-    t2 = y0 + (y1 - y0) * s1 - ya
-    dt = t2 - t1
-    small = jnp.abs(dt) < 1e-3 * cell
-    # G's divided difference; G is piecewise quadratic, so where dt is tiny the
-    # derivative at the midpoint is exact within one piece.
-    dd = (_ramp_integral(t2, cell) - _ramp_integral(t1, cell)) / jnp.where(small, 1.0, dt)
-    mid = jnp.clip(0.5 * (t1 + t2), 0.0, cell)
-    return -signed_length * jnp.where(small, mid, dd) / (cell * cell)
-
-
-def outline_coverage(
-    v0: Float[Array, "e 2"], v1: Float[Array, "e 2"], x: Array, y: Array, cell
-) -> Array:
-    """Exact area coverage of the closed outline made of the edges v0[i] → v1[i].
-
-    A scan over the edges, one edge's term per step (checkpointed): compile time and
-    reverse-mode memory do not grow with the number of edges, unlike an unrolled loop.
-    """
-    shape = jnp.broadcast_shapes(x.shape, y.shape)
-    dtype = jnp.result_type(x, y, v0)
-
-    @jax.checkpoint
-    def term(e):
-        return edge_coverage(e[0], e[1], e[2], e[3], x, y, cell)
-
-    def step(total, e):
-        return total + term(e), None
-
-    edges = jnp.concatenate([v0, v1], axis=1)
-    total, _ = jax.lax.scan(step, jnp.zeros(shape, dtype), edges)
-    return total
-
-
-def _safe_norm(x: Array, y: Array) -> Array:
-    r2 = x * x + y * y
-    ok = r2 > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, r2, 1.0)), 0.0)
 
 
 class CurvedIris(AbstractPupil):
