@@ -103,3 +103,52 @@ def test_n_override_breaking_defocus_rule_names_rule_3():
     blur = difstar._sampling.scene_extent(camera, scene)["blur_diameter_px"]
     with pytest.raises(difstar.SamplingError, match="rule"):
         choose_grid(camera, scene, crop=(16, 16), n=int(blur) // 2)
+
+
+@pytest.mark.parametrize("config", ["focused", "defocused"])
+def test_windows_change_nothing_but_the_work(config):
+    """The FFT path's pupil window (ATF computed only where the pupil is) and source
+    window (geometric image only where the sources are) give the full-grid result, values
+    and gradients, in float64 (tolerance 1e-12 relative to the largest value)."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    with jax.enable_x64(True):
+        camera, scene = _scene(config, crop=(48, 48))
+        camera = jax.tree_util.tree_map(
+            lambda x: jnp.asarray(x, jnp.float64) if eqx.is_inexact_array(x) else x, camera)
+        g = choose_grid(camera, scene, crop=(48, 48), raw_only=True, padding=0.5)
+        assert 0 < g.pupil_window < g.n * g.oversample and 0 < g.source_window < g.n
+        g0 = dataclasses.replace(g, pupil_window=0, source_window=0)
+        a = difstar.simulate(camera, scene, g).cfa
+        b = difstar.simulate(camera, scene, g0).cfa
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12 * float(b.max()))
+
+        def loss(c, s, grid):
+            return jnp.sum(difstar.simulate(c, s, grid).cfa ** 2)
+
+        ga = eqx.filter_grad(loss)(camera, scene, g)
+        gb = eqx.filter_grad(loss)(camera, scene, g0)
+        for x, y in zip(jax.tree_util.tree_leaves(ga), jax.tree_util.tree_leaves(gb)):
+            assert np.all(np.isfinite(np.asarray(x)))
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-9,
+                                       atol=1e-9 * float(np.max(np.abs(np.asarray(y))) + 1e-300))
+        gs = eqx.filter_grad(lambda s: loss(camera, s, g))(scene)
+        gs0 = eqx.filter_grad(lambda s: loss(camera, s, g0))(scene)
+        r, r0 = gs.sources[0].radius, gs0.sources[0].radius
+        assert np.isfinite(float(r)) and float(r) == pytest.approx(float(r0), rel=1e-9)
+
+
+def test_undersized_windows_are_refused():
+    import dataclasses
+
+    camera, scene = _scene("defocused", crop=(48, 48))
+    g = choose_grid(camera, scene, crop=(48, 48), raw_only=True, padding=0.5)
+    with pytest.raises(difstar.SamplingError, match=r"Grid\.pupil_window = 20 .*use pupil_window >= \d+"):
+        difstar.simulate(camera, scene, dataclasses.replace(g, pupil_window=20))
+    with pytest.raises(difstar.SamplingError, match=r"Grid\.source_window = 3 px .*use source_window >= \d+"):
+        difstar.simulate(camera, scene, dataclasses.replace(g, source_window=3))
+    with pytest.raises(ValueError, match=r"Grid\.pupil_window must be 0 .* or an even number"):
+        dataclasses.replace(g, pupil_window=21)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 
 from ._custom_types import Array, Complex, Float
@@ -69,6 +70,7 @@ def atf(
     use_defocus: bool = True,
     shift: tuple[float, float] = (0.0, 0.0),
     cell_average: bool = True,
+    window: int = 0,
 ) -> Complex[Array, "h w"]:
     """The centred ATF on a ``shape`` grid whose image-plane pitch is ``dx`` metres.
 
@@ -82,8 +84,34 @@ def atf(
     phase, a sinc of its gradient). The PSF then divides the cell's transform out exactly
     (``_psf.cell_correction``); without this factor that division would be wrong for
     defocused PSFs.
+
+    ``window`` m > 0 (even) computes the ATF only on the centred m × m samples and leaves
+    the rest exactly 0: the same result wherever the pupil lies inside the window
+    (``difstar.choose_grid`` sizes it; ``simulate`` checks it).
     """
+    h, w = shape
+    m = int(window)
+    if 0 < m < min(h, w):
+        # The pupil lies in the centred m × m window: compute the ATF there only and place
+        # it in a zero grid (a slice update: a pad would make XLA's CPU backend fuse the
+        # whole computation into it and run it several times slower).
+        sub = _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus,
+                      shift, cell_average, m)
+        return jax.lax.dynamic_update_slice(
+            jnp.zeros(shape, sub.dtype), sub, (h // 2 - m // 2, w // 2 - m // 2))
+    return _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus,
+                   shift, cell_average, 0)
+
+
+def _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus, shift,
+            cell_average, sub):
+    """The ATF of a ``shape`` grid on its centred ``sub`` × ``sub`` window (0: all)."""
     fx, fy = frequency_axes(shape, dx)
+    h, w = shape
+    r0, c0, hs, ws = 0, 0, h, w
+    if sub:
+        r0, c0, hs, ws = h // 2 - sub // 2, w // 2 - sub // 2, sub, sub
+        fx, fy = fx[c0 : c0 + ws], fy[r0 : r0 + hs]
     scale = pupil_scale(wavelength, z_image, defocus, scaling)
     df = (1.0 / (shape[1] * dx), 1.0 / (shape[0] * dx))
     # The pupil cell is the frequency cell scaled to the pupil (square when h == w).
@@ -101,9 +129,8 @@ def atf(
                 * jnp.sinc(c * fy * df[1] / math.pi)[:, None]
             )
     if shift != (0.0, 0.0):
-        h, w = shape
-        kr = (jnp.arange(h) - h // 2)[:, None]
-        kc = (jnp.arange(w) - w // 2)[None, :]
+        kr = (jnp.arange(r0, r0 + hs) - h // 2)[:, None]
+        kc = (jnp.arange(c0, c0 + ws) - w // 2)[None, :]
         phase = phase - 2 * math.pi * (kr * shift[0] / h + kc * shift[1] / w)
     if use_defocus or shift != (0.0, 0.0):
         return amplitude * jnp.exp(1j * phase)

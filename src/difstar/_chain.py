@@ -169,6 +169,11 @@ class Grid(eqx.Module):
     (in focus, polygonal pupils only) evaluates the PSF in closed form (Lee & Mittra) on
     exactly the offsets the crop needs and convolves it linearly with the geometric image
     on a ``source_window`` × ``source_window`` window: no grid, no aliasing, no wrap.
+
+    On the FFT path a non-zero ``source_window`` (odd, pixels) computes the geometric
+    image only on that centred window, and ``pupil_window`` (even, samples of the n·q
+    frequency grid) computes the pupil's ATF only on that centred window; both must hold
+    what they hold (``simulate`` checks, ``choose_grid`` sizes them). 0 = the whole grid.
     """
 
     n: int = eqx.field(static=True)
@@ -179,6 +184,7 @@ class Grid(eqx.Module):
     scaling: str = eqx.field(static=True, default="fresnel")
     method: str = eqx.field(static=True, default="fft")
     source_window: int = eqx.field(static=True, default=0)
+    pupil_window: int = eqx.field(static=True, default=0)
 
     def __check_init__(self):
         if self.method not in METHODS:
@@ -187,6 +193,18 @@ class Grid(eqx.Module):
             raise ValueError(
                 "Grid.source_window must be an odd number of pixels holding the sources "
                 f"for method='exact'; got {self.source_window} (difstar.choose_grid sets it)."
+            )
+        if self.method == "fft" and self.source_window and (
+            self.source_window % 2 == 0 or self.source_window > self.n
+        ):
+            raise ValueError(
+                f"Grid.source_window must be 0 (the whole grid) or an odd number of pixels "
+                f"<= n = {self.n}; got {self.source_window}."
+            )
+        if self.pupil_window and (self.pupil_window % 2 or self.pupil_window < 2):
+            raise ValueError(
+                f"Grid.pupil_window must be 0 (the whole grid) or an even number of samples; "
+                f"got {self.pupil_window}."
             )
         if self.n < 8:
             raise ValueError(f"Grid.n must be >= 8 pixels; got {self.n}.")
@@ -255,7 +273,7 @@ def channel_psf(pupil, wavelength, geometry: Geometry, *, pixel_pitch: float, gr
         pupil, wavelength=wavelength, z_image=geometry.z_exit_pupil,
         defocus=geometry.defocus, dx=pixel_pitch / q, shape=(n * q, n * q),
         scaling=grid.scaling, use_defocus=grid.use_defocus, shift=(s, s),
-        cell_average=pupil.area_coverage,
+        cell_average=pupil.area_coverage, window=grid.pupil_window,
     )
     out = bin_pixels(intensity_from_atf(h_atf, correct_cell=pupil.area_coverage), q)
     return out / jnp.sum(out)
@@ -276,9 +294,15 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
         psfs, image = _exact_image(camera, scene, grid, g)
         return _finish(camera, scene, grid, g, psfs, image)
     n = grid.n
-    b = geometric_image(
-        scene.sources, magnification=g.magnification, pixel_pitch=sen.pixel_pitch, shape=(n, n)
-    )
+    w = grid.source_window
+    if 0 < w < n:  # the sources' image on its window, placed in a zero grid
+        bw = geometric_image(scene.sources, magnification=g.magnification,
+                             pixel_pitch=sen.pixel_pitch, shape=(w, w))
+        b = jax.lax.dynamic_update_slice(jnp.zeros((3, n, n), bw.dtype), bw,
+                                         (0, n // 2 - w // 2, n // 2 - w // 2))
+    else:
+        b = geometric_image(scene.sources, magnification=g.magnification,
+                            pixel_pitch=sen.pixel_pitch, shape=(n, n))
     b_ft = image_spectrum(b)  # once, shared by the three channels' convolutions
 
     def one(wavelength, b_ft_c):
@@ -351,6 +375,24 @@ def check_sampling(camera: Camera, scene: Scene, grid: Grid) -> None:
             # the exact path has no grid: only pixel integration (rule 1) applies
             if grid.method == "fft" or m.startswith("rule 1")
         ]
+    if grid.method == "fft" and grid.pupil_window:
+        need = max(pupil_window_for(r, lam, z_r, camera.sensor.pixel_pitch, grid.n)
+                   for lam in lams)
+        if need > grid.pupil_window:
+            fails.append(
+                f"Grid.pupil_window = {grid.pupil_window} samples cannot hold the pupil "
+                f"({r * 1e3:.4g} mm radius spans {need} samples at the shortest wavelength); "
+                f"use pupil_window >= {need}, or 0 for the whole grid."
+            )
+    if grid.method == "fft" and 0 < grid.source_window < grid.n:
+        from ._sampling import scene_extent
+
+        need_w = source_window_for(scene_extent(camera, scene)["object_radius_px"])
+        if need_w > grid.source_window:
+            fails.append(
+                f"Grid.source_window = {grid.source_window} px cannot hold the sources' "
+                f"image; use source_window >= {need_w} (odd), or 0 for the whole grid."
+            )
     if grid.method == "exact" and abs(dz) > 0:
         peak = math.pi * r * r * abs(dz) / (min(lams) * z_r * (z_r - dz))
         if peak > 1e-2:
@@ -369,6 +411,20 @@ def check_sampling(camera: Camera, scene: Scene, grid: Grid) -> None:
             )
     if fails:
         raise SamplingError("difstar.simulate: " + " ".join(fails))
+
+
+def pupil_window_for(pupil_radius: float, wavelength: float, z_image: float,
+                     pixel_pitch: float, n: int) -> int:
+    """Even number of frequency samples (a side, of the n·q grid) holding a pupil of this
+    radius, with 2 samples to spare each side: 2 r n p / (λ z_R) + 4."""
+    span = 2 * pupil_radius * n * pixel_pitch / (wavelength * z_image)
+    m = math.ceil(span) + 4
+    return m + m % 2
+
+
+def source_window_for(object_radius_px: float) -> int:
+    """Odd number of pixels holding the sources' image (its radius plus one pixel)."""
+    return 2 * math.ceil(object_radius_px + 1) + 1
 
 
 def needs_defocus(camera: Camera, scene: Scene, *, tolerance: float = 1e-2) -> bool:

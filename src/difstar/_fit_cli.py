@@ -88,8 +88,15 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
                         oversample=man.grid.get("oversample"))
         dz = probe.param.get(f"defocus/{name}")
         use_dz = g.use_defocus or (dz is not None and dz.free)
+        # windows (FFT path: the pupil's ATF and the sources' image computed only where
+        # they are) sized like the grid, plus the source offsets' bounds
+        off = probe.param.get(f"source_offset/{name}")
+        reach = 0 if off is None or not off.free else int(np.ceil(np.max(np.abs(
+            np.concatenate([off.lo, off.hi])))))
+        src = g.source_window + 2 * reach if g.source_window else 0
         configs.append(dataclasses.replace(dummy, grid=Grid(
-            n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz, raw_only=True)))
+            n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz, raw_only=True,
+            pupil_window=g.pupil_window, source_window=src if src < g.n else 0)))
     return FitModel(cc, tuple(configs), caps, tuple(params))
 
 

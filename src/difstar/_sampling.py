@@ -12,7 +12,16 @@ import math
 
 import jax.numpy as jnp
 
-from ._chain import Camera, Grid, Scene, check_sampling, geometry_of, needs_defocus
+from ._chain import (
+    Camera,
+    Grid,
+    Scene,
+    check_sampling,
+    geometry_of,
+    needs_defocus,
+    pupil_window_for,
+    source_window_for,
+)
 from ._psf import SamplingError
 
 _FAST_RADICES = (2, 3, 5, 7)
@@ -122,7 +131,7 @@ def choose_grid(
                 "RegularPolygon pupil; use method='fft'."
             )
         ext = scene_extent(camera, scene)
-        window = 2 * math.ceil(ext["object_radius_px"] + 1) + 1
+        window = source_window_for(ext["object_radius_px"])
         q = required_oversample(camera, scene) if oversample is None else int(oversample)
         grid = Grid(n=max(crop), oversample=q, crop=tuple(int(c) for c in crop),
                     use_defocus=False, raw_only=raw_only, scaling=scaling, method="exact",
@@ -154,9 +163,17 @@ def choose_grid(
             f"and its blur ({ext['blur_diameter_px']:.4g} px); the image would wrap around. "
             f"Use n >= {need} (a fast size: {fast_length(need)}), or omit n."
         )
+    # model only what the scene needs: the pupil's ATF on the samples the pupil covers
+    # (at the shortest wavelength), the geometric image on the pixels the sources cover
+    g = geometry_of(camera, scene)
+    lam_min = float(jnp.min(camera.sensor.wavelengths))
+    m = pupil_window_for(float(camera.lens.pupil.max_radius()), lam_min,
+                         float(g.z_exit_pupil), camera.sensor.pixel_pitch, int(n))
+    src = source_window_for(ext["object_radius_px"])
     grid = Grid(
         n=int(n), oversample=q, crop=tuple(int(c) for c in crop),
         use_defocus=needs_defocus(camera, scene), raw_only=raw_only, scaling=scaling,
+        pupil_window=m if m < int(n) * q else 0, source_window=src if src < int(n) else 0,
     )
     if overridden:
         check_sampling(camera, scene, grid)  # rules 1, 3, 4 with the fix in the message
