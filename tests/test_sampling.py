@@ -105,10 +105,11 @@ def test_n_override_breaking_defocus_rule_names_rule_3():
         choose_grid(camera, scene, crop=(16, 16), n=int(blur) // 2)
 
 
-@pytest.mark.parametrize("config", ["focused", "defocused"])
-def test_windows_change_nothing_but_the_work(config):
+@pytest.mark.parametrize("config,q", [("focused", 1), ("defocused", 1), ("defocused", 2)])
+def test_windows_change_nothing_but_the_work(config, q):
     """The FFT path's pupil window (ATF computed only where the pupil is) and source
-    window (geometric image only where the sources are) give the full-grid result, values
+    window (geometric image only where the sources are), and with them the pruned
+    transforms and linear convolution of ``_pruned``, give the full-grid result, values
     and gradients, in float64 (tolerance 1e-12 relative to the largest value)."""
     import dataclasses
 
@@ -120,7 +121,10 @@ def test_windows_change_nothing_but_the_work(config):
         camera = jax.tree_util.tree_map(
             lambda x: jnp.asarray(x, jnp.float64) if eqx.is_inexact_array(x) else x, camera)
         g = choose_grid(camera, scene, crop=(48, 48), raw_only=True, padding=0.5)
+        # q > 1 keeps the frequency step, so the pupil window still holds the pupil
+        g = dataclasses.replace(g, oversample=max(q, g.oversample))
         assert 0 < g.pupil_window < g.n * g.oversample and 0 < g.source_window < g.n
+        assert difstar._pruned.applies(g)  # pruned transforms + linear convolution
         g0 = dataclasses.replace(g, pupil_window=0, source_window=0)
         a = difstar.simulate(camera, scene, g).cfa
         b = difstar.simulate(camera, scene, g0).cfa

@@ -71,7 +71,8 @@ def atf(
     shift: tuple[float, float] = (0.0, 0.0),
     cell_average: bool = True,
     window: int = 0,
-) -> Complex[Array, "h w"]:
+    with_energy: bool = False,
+):
     """The centred ATF on a ``shape`` grid whose image-plane pitch is ``dx`` metres.
 
     ``wavelength``, ``z_image`` (exit pupil to sensor) and ``defocus`` (Δz) in metres.
@@ -88,6 +89,9 @@ def atf(
     ``window`` m > 0 (even) computes the ATF only on the centred m × m samples and leaves
     the rest exactly 0: the same result wherever the pupil lies inside the window
     (``difstar.choose_grid`` sizes it; ``simulate`` checks it).
+
+    ``with_energy`` also returns the pupil's energy (:func:`atf_energy`), the PSF's
+    grid-independent normalisation.
     """
     h, w = shape
     m = int(window)
@@ -95,17 +99,36 @@ def atf(
         # The pupil lies in the centred m × m window: compute the ATF there only and place
         # it in a zero grid (a slice update: a pad would make XLA's CPU backend fuse the
         # whole computation into it and run it several times slower).
-        sub = _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus,
-                      shift, cell_average, m)
-        return jax.lax.dynamic_update_slice(
+        sub, energy = _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling,
+                              use_defocus, shift, cell_average, m, with_energy=True)
+        full = jax.lax.dynamic_update_slice(
             jnp.zeros(shape, sub.dtype), sub, (h // 2 - m // 2, w // 2 - m // 2))
+        return (full, energy) if with_energy else full
     return _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus,
-                   shift, cell_average, 0)
+                   shift, cell_average, 0, with_energy=with_energy)
+
+
+def atf_energy(pupil, amplitude):
+    """The pupil's energy ∫|P|² in frequency cells, from its raster: the exact area (Σ
+    coverage) for an area-coverage pupil, Σ|P|² for a plain raster. Divided by the grid's
+    cell count it is what |IFFT(ATF)|² sums to over the whole plane (Parseval), so a PSF
+    normalised by it sums to 1 over the infinite plane, independent of the grid."""
+    if pupil.area_coverage:
+        return jnp.sum(amplitude)
+    return jnp.sum(amplitude * amplitude)
 
 
 def _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus, shift,
-            cell_average, sub):
-    """The ATF of a ``shape`` grid on its centred ``sub`` × ``sub`` window (0: all)."""
+            cell_average, sub, *, with_energy: bool = False):
+    """The ATF of a ``shape`` grid on its centred ``sub`` × ``sub`` window (0: all), and
+    with ``with_energy`` the pupil's energy (:func:`atf_energy`)."""
+    out = _atf_values(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus,
+                      shift, cell_average, sub)
+    return out if with_energy else out[0]
+
+
+def _atf_values(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus, shift,
+                cell_average, sub):
     fx, fy = frequency_axes(shape, dx)
     h, w = shape
     r0, c0, hs, ws = 0, 0, h, w
@@ -119,6 +142,7 @@ def _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus
     x = (scale * fx)[None, :]
     y = (scale * fy)[:, None]
     amplitude = pupil.coverage(x, y, cell)
+    energy = atf_energy(pupil, amplitude)
     phase = jnp.zeros_like(amplitude)
     if use_defocus:
         c = defocus_phase_coefficient(wavelength, z_image, defocus, scaling)
@@ -133,8 +157,8 @@ def _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus
         kc = (jnp.arange(c0, c0 + ws) - w // 2)[None, :]
         phase = phase - 2 * math.pi * (kr * shift[0] / h + kc * shift[1] / w)
     if use_defocus or shift != (0.0, 0.0):
-        return amplitude * jnp.exp(1j * phase)
-    return amplitude.astype(jnp.result_type(amplitude.dtype, jnp.complex64))
+        return amplitude * jnp.exp(1j * phase), energy
+    return amplitude.astype(jnp.result_type(amplitude.dtype, jnp.complex64)), energy
 
 
 def pupil_samples(pupil_radius, *, wavelength, z_image, dx, n: int) -> Float[Array, ""]:

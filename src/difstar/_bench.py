@@ -287,9 +287,10 @@ def _mem(compiled) -> int:
 
 
 def fft_floor(grid, dtype, repeats: int = 3) -> float:
-    """Seconds for exactly the FFTs ``simulate`` does on ``grid``: per channel one complex
-    (nq)² inverse FFT (the field), one real n² FFT (the OTF) and one real inverse FFT (the
-    image), plus the real FFT of the three-channel geometric image."""
+    """Seconds for exactly the FFTs ``simulate`` does on ``grid``. Full FFT path: per
+    channel one complex (nq)² inverse FFT (the field), one real n² FFT (the OTF) and one
+    real inverse FFT (the image), plus the real FFT of the three-channel geometric image.
+    Pruned path (``_pruned``) and exact path: the transforms they do instead."""
     import jax
     import jax.numpy as jnp
 
@@ -309,6 +310,30 @@ def fft_floor(grid, dtype, repeats: int = 3) -> float:
 
         jax.block_until_ready(conv(p))
         return _best(lambda: conv(p), repeats)
+    from . import _pruned
+
+    if _pruned.applies(grid):
+        # the pruned chain's FFTs: per channel the field's first pass over the pupil
+        # window's columns, its second pass over the rows the crop needs, and the linear
+        # convolution (real FFTs of a fast size ≥ crop + source window − 1)
+        from ._sampling import fast_length
+
+        nf, hb, q = grid.n * grid.oversample, grid.source_window, grid.oversample
+        wp = grid.pupil_window if 0 < grid.pupil_window < nf else nf
+        rows = (grid.crop[0] + hb - 1) * q
+        lh, lw = (fast_length(c + hb - 1) for c in grid.crop)
+        cdt = jnp.result_type(dtype, jnp.complex64)
+        a = jax.random.normal(key, (3, wp, wp), dtype).astype(cdt)
+        p = jax.random.normal(key, (3, lh, lw), dtype)
+
+        @jax.jit
+        def pruned(a, p):
+            field = jnp.fft.ifft(jnp.fft.ifft(a, n=nf, axis=1)[:, :rows], n=nf, axis=2)
+            spec = jnp.fft.rfft2(p) * jnp.fft.rfft2(p[:, :hb, :hb], s=(lh, lw))
+            return field, jnp.fft.irfft2(spec, s=(lh, lw))
+
+        jax.block_until_ready(pruned(a, p))
+        return _best(lambda: pruned(a, p), repeats)
     n, m = grid.n, grid.n * grid.oversample
     cdt = jnp.result_type(dtype, jnp.complex64)
     a = jax.random.normal(key, (3, m, m), dtype).astype(cdt)

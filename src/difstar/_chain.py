@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _pruned
 from ._atf import SCALINGS, atf
 from ._cfa import mosaic
 from ._colour import render_srgb
@@ -221,8 +222,9 @@ class Grid(eqx.Module):
 class Prediction(eqx.Module):
     """Everything ``simulate`` returns; images are cropped to ``grid.crop``.
 
-    psf: (3, h, w) per-channel PSF on the crop; it sums to 1 over the whole grid
-        (method "fft") or over the whole plane (method "exact").
+    psf: (3, h, w) per-channel PSF on the crop, normalised so that it sums to 1 over
+        the whole plane (Parseval: by the pupil's area, not by the grid's sum, so the
+        normalisation does not depend on the grid).
     image: (3, h, w) C, the linear image of the normalised object.
     zeta: (3, h, w) normalised pixel values per channel before the CFA.
     cfa: (h, w) the RAW mosaic ζ in [0, 1].
@@ -266,17 +268,18 @@ def _crop(a: Array, crop: tuple[int, int]) -> Array:
 
 
 def channel_psf(pupil, wavelength, geometry: Geometry, *, pixel_pitch: float, grid: Grid):
-    """One channel's PSF on the full n × n grid (pixel-integrated, unit sum)."""
+    """One channel's PSF on the full n × n grid, pixel-integrated, normalised by the
+    pupil's energy (Parseval) so that its sum over the infinite plane is 1."""
     n, q = grid.n, grid.oversample
     s = block_centring_shift(n, q)
-    h_atf = atf(
+    h_atf, energy = atf(
         pupil, wavelength=wavelength, z_image=geometry.z_exit_pupil,
         defocus=geometry.defocus, dx=pixel_pitch / q, shape=(n * q, n * q),
         scaling=grid.scaling, use_defocus=grid.use_defocus, shift=(s, s),
-        cell_average=pupil.area_coverage, window=grid.pupil_window,
+        cell_average=pupil.area_coverage, window=grid.pupil_window, with_energy=True,
     )
     out = bin_pixels(intensity_from_atf(h_atf, correct_cell=pupil.area_coverage), q)
-    return out / jnp.sum(out)
+    return out * ((n * q) ** 2 / energy)
 
 
 def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
@@ -295,6 +298,12 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
         return _finish(camera, scene, grid, g, psfs, image)
     n = grid.n
     w = grid.source_window
+    if _pruned.applies(grid):  # only the work the crop needs; equal to the below
+        bw = geometric_image(scene.sources, magnification=g.magnification,
+                             pixel_pitch=sen.pixel_pitch, shape=(w, w))
+        psfs, image = _pruned.image(camera.lens.pupil, sen.wavelengths, g, bw,
+                                    pixel_pitch=sen.pixel_pitch, grid=grid)
+        return _finish(camera, scene, grid, g, psfs, image)
     if 0 < w < n:  # the sources' image on its window, placed in a zero grid
         bw = geometric_image(scene.sources, magnification=g.magnification,
                              pixel_pitch=sen.pixel_pitch, shape=(w, w))

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 
 from ._cfa import bayer_masks_np, check_pattern
 from ._custom_types import Array, Float
@@ -51,18 +50,21 @@ def _convolve_reflect(x: Float[Array, "c h w"], kernels: np.ndarray) -> Float[Ar
     """Channel c convolved with kernels[c] (true convolution, odd square kernels), borders
     as scipy.ndimage.convolve(mode="reflect")."""
     r = kernels.shape[-1] // 2
+    h, w = x.shape[-2:]
     xp = jnp.pad(x, ((0, 0), (r, r), (r, r)), mode="symmetric")
-    # lax.conv is a cross-correlation: flip the kernels for a convolution
-    rhs = jnp.asarray(kernels[:, None, ::-1, ::-1].copy(), dtype=x.dtype)
-    out = lax.conv_general_dilated(
-        xp[None],
-        rhs,
-        window_strides=(1, 1),
-        padding="VALID",
-        feature_group_count=x.shape[0],
-        precision=lax.Precision.HIGHEST,
-    )
-    return out[0]
+    # A sum of shifted slices, one per non-zero tap (XLA fuses it into one pass; its CPU
+    # grouped convolution ran ~10× slower). Convolution: out[y] = Σ_t k[t] x[y − t], so
+    # tap (i, j) of the kernel reads the padded input at offset (2r − i, 2r − j).
+    out = None
+    for i in range(2 * r + 1):
+        for j in range(2 * r + 1):
+            k = kernels[:, i, j]
+            if not np.any(k):
+                continue
+            term = jnp.asarray(k, x.dtype)[:, None, None] * xp[:, 2 * r - i : 2 * r - i + h,
+                                                               2 * r - j : 2 * r - j + w]
+            out = term if out is None else out + term
+    return out
 
 
 def _check_cfa(cfa) -> None:
