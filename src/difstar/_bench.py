@@ -173,10 +173,19 @@ def difstar_reference(camera, scene, crop: tuple[int, int], padding: float) -> n
     from ._otf import otf
     from ._sampling import choose_grid
 
+    from . import _pruned
+
     grid = choose_grid(camera, scene, crop=crop, padding=padding, raw_only=True)
     g = geometry_of(camera, scene)
     n = grid.n
     p = camera.sensor.pixel_pitch
+    if _pruned.applies(grid):  # the same numbers as below, far less memory and time
+        w = grid.source_window
+        bw = geometric_image(scene.sources, magnification=g.magnification, pixel_pitch=p,
+                             shape=(w, w))
+        return np.asarray(jax.jit(lambda bw: _pruned.image(
+            camera.lens.pupil, camera.sensor.wavelengths, g, bw, pixel_pitch=p,
+            grid=grid)[1])(bw))
     b_ft = image_spectrum(geometric_image(scene.sources, magnification=g.magnification,
                                           pixel_pitch=p, shape=(n, n)))
 
