@@ -100,12 +100,13 @@ def atf(
         # it in a zero grid (a slice update: a pad would make XLA's CPU backend fuse the
         # whole computation into it and run it several times slower).
         sub, energy = _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling,
-                              use_defocus, shift, cell_average, m, with_energy=True)
-        full = jax.lax.dynamic_update_slice(
+                              use_defocus, shift, cell_average, m)
+        h_atf = jax.lax.dynamic_update_slice(
             jnp.zeros(shape, sub.dtype), sub, (h // 2 - m // 2, w // 2 - m // 2))
-        return (full, energy) if with_energy else full
-    return _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus,
-                   shift, cell_average, 0, with_energy=with_energy)
+    else:
+        h_atf, energy = _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling,
+                                use_defocus, shift, cell_average, 0)
+    return (h_atf, energy) if with_energy else h_atf
 
 
 def atf_energy(pupil, amplitude):
@@ -119,16 +120,9 @@ def atf_energy(pupil, amplitude):
 
 
 def _atf_on(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus, shift,
-            cell_average, sub, *, with_energy: bool = False):
-    """The ATF of a ``shape`` grid on its centred ``sub`` × ``sub`` window (0: all), and
-    with ``with_energy`` the pupil's energy (:func:`atf_energy`)."""
-    out = _atf_values(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus,
-                      shift, cell_average, sub)
-    return out if with_energy else out[0]
-
-
-def _atf_values(pupil, wavelength, z_image, defocus, dx, shape, scaling, use_defocus, shift,
-                cell_average, sub):
+            cell_average, sub):
+    """(ATF, pupil energy): the ATF of a ``shape`` grid on its centred ``sub`` × ``sub``
+    window (0: all), and the pupil's energy (:func:`atf_energy`)."""
     fx, fy = frequency_axes(shape, dx)
     h, w = shape
     r0, c0, hs, ws = 0, 0, h, w

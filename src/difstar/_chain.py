@@ -298,15 +298,13 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
         return _finish(camera, scene, grid, g, psfs, image)
     n = grid.n
     w = grid.source_window
-    if _pruned.applies(grid):  # only the work the crop needs; equal to the below
+    if 0 < w < n:  # the sources' image on its window
         bw = geometric_image(scene.sources, magnification=g.magnification,
                              pixel_pitch=sen.pixel_pitch, shape=(w, w))
-        psfs, image = _pruned.image(camera.lens.pupil, sen.wavelengths, g, bw,
-                                    pixel_pitch=sen.pixel_pitch, grid=grid)
-        return _finish(camera, scene, grid, g, psfs, image)
-    if 0 < w < n:  # the sources' image on its window, placed in a zero grid
-        bw = geometric_image(scene.sources, magnification=g.magnification,
-                             pixel_pitch=sen.pixel_pitch, shape=(w, w))
+        if _pruned.applies(grid):  # only the work the crop needs; equal to the below
+            psfs, image = _pruned.image(camera.lens.pupil, sen.wavelengths, g, bw,
+                                        pixel_pitch=sen.pixel_pitch, grid=grid)
+            return _finish(camera, scene, grid, g, psfs, image)
         b = jax.lax.dynamic_update_slice(jnp.zeros((3, n, n), bw.dtype), bw,
                                          (0, n // 2 - w // 2, n // 2 - w // 2))
     else:

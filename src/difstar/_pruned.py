@@ -24,7 +24,7 @@ import numpy as np
 import jax.numpy as jnp
 
 from ._atf import _atf_on
-from ._psf import bin_pixels, block_centring_shift
+from ._psf import bin_pixels, block_centring_shift, cell_sinc
 
 
 def applies(grid) -> bool:
@@ -41,12 +41,6 @@ def _unshifted(nf: int, start_px: int, count_px: int, q: int) -> np.ndarray:
     return (jc - nf // 2) % nf
 
 
-def _inv_cell2(nf: int) -> np.ndarray:
-    """1 / sinc²(offset / nf) for each unshifted index (the cell correction, 1-D)."""
-    off = (np.arange(nf) + nf // 2) % nf - nf // 2
-    return 1.0 / np.sinc(off / nf) ** 2
-
-
 def psf_region(pupil, wavelength, geometry, *, pixel_pitch: float, grid, rows: tuple[int, int],
                cols: tuple[int, int]):
     """One channel's pixel-integrated PSF on pixel offsets ``rows`` = (first, count) and
@@ -58,7 +52,7 @@ def psf_region(pupil, wavelength, geometry, *, pixel_pitch: float, grid, rows: t
     s = block_centring_shift(n, q)
     sub, energy = _atf_on(pupil, wavelength, geometry.z_exit_pupil, geometry.defocus,
                           pixel_pitch / q, (nf, nf), grid.scaling, grid.use_defocus, (s, s),
-                          pupil.area_coverage, m, with_energy=True)
+                          pupil.area_coverage, m)
     ir = _unshifted(nf, n // 2 + rows[0], rows[1], q)
     ic = _unshifted(nf, n // 2 + cols[0], cols[1], q)
     # the field (up to a unimodular separable phase): the window's columns first, keeping
@@ -67,7 +61,7 @@ def psf_region(pupil, wavelength, geometry, *, pixel_pitch: float, grid, rows: t
     field = jnp.fft.ifft(g, n=nf, axis=1)[:, ic]
     reg = jnp.real(field) ** 2 + jnp.imag(field) ** 2
     if pupil.area_coverage:
-        wc = _inv_cell2(nf)
+        wc = 1.0 / np.fft.ifftshift(cell_sinc(nf)) ** 2  # the cell correction, unshifted
         reg = reg * jnp.asarray(wc[ir], reg.dtype)[:, None] * jnp.asarray(wc[ic], reg.dtype)[None, :]
     return bin_pixels(reg, q) * (nf**2 / energy)
 

@@ -108,9 +108,12 @@ def cell_correction(shape: tuple[int, int]) -> Array:
     the FFT PSF converge faster than the 1/N of a binary raster (BENCHMARKS.md).
     """
     h, w = shape
-    sr = jnp.sinc((jnp.arange(h) - h // 2) / h)
-    sc = jnp.sinc((jnp.arange(w) - w // 2) / w)
-    return sr[:, None] * sc[None, :]
+    return jnp.asarray(cell_sinc(h))[:, None] * jnp.asarray(cell_sinc(w))[None, :]
+
+
+def cell_sinc(n: int) -> np.ndarray:
+    """sinc(j/n) on a centred axis of n samples (the 1-D factor of ``cell_correction``)."""
+    return np.sinc((np.arange(n) - n // 2) / n)
 
 
 def intensity_from_atf(h_atf, *, correct_cell: bool = True) -> Array:
