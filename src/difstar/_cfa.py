@@ -11,6 +11,7 @@ it static under ``jax.jit``); the masks are built with NumPy at trace time.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -60,10 +61,28 @@ def mosaic(rgb: Float[Array, "3 h w"], pattern: str) -> Float[Array, "h w"]:
     Units are those of ``rgb`` (for difstar, normalised raw values ζ in [0, 1]).
     Differentiable: the gradient flows to the picked channel only.
     """
-    # a masked sum, not take_along_axis: its transpose is a scatter-add that XLA
-    # constant-folds slowly on large mosaics
-    masks = jnp.asarray(bayer_masks_np(rgb.shape[1:], pattern), dtype=rgb.dtype)
-    return jnp.sum(rgb * masks, axis=0)
+    # selected by the pixel's row and column parity (iotas that XLA fuses), not by
+    # constant masks or take_along_axis: constant (h, w) masks are read from memory on
+    # every call, and take_along_axis's transpose is a scatter-add XLA folds slowly
+    return _by_site(shape=rgb.shape[1:], pattern=pattern, pick=lambda c: rgb[c])
+
+
+def _parity(shape: tuple[int, int]):
+    """(row % 2, column % 2) as int32 (h, w) iotas."""
+    rows = jax.lax.broadcasted_iota(jnp.int32, tuple(shape), 0) % 2
+    cols = jax.lax.broadcasted_iota(jnp.int32, tuple(shape), 1) % 2
+    return rows, cols
+
+
+def _by_site(*, shape, pattern: str, pick):
+    """An (h, w) array whose pixel takes ``pick(c)`` (broadcastable to (h, w)) for its
+    own channel c (0 R, 1 G, 2 B) of the Bayer ``pattern``."""
+    check_pattern(pattern)
+    rows, cols = _parity(shape)
+    ch = [_CHANNEL[x] for x in pattern]  # the 2×2 tile, row by row
+    top = jnp.where(cols == 0, pick(ch[0]), pick(ch[1]))
+    bottom = jnp.where(cols == 0, pick(ch[2]), pick(ch[3]))
+    return jnp.where(rows == 0, top, bottom)
 
 
 def white_balance(
@@ -77,8 +96,7 @@ def white_balance(
     gains = jnp.asarray(gains)
     if gains.shape != (3,):
         raise ValueError(f"gains must have shape (3,) for (R, G, B), got {gains.shape}")
-    idx = jnp.asarray(channel_index(cfa.shape, pattern))
-    return cfa * gains[idx]
+    return cfa * _by_site(shape=cfa.shape, pattern=pattern, pick=lambda c: gains[c])
 
 
 __all__ = ["PATTERNS", "bayer_masks", "mosaic", "white_balance"]

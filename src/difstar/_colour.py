@@ -50,7 +50,8 @@ def srgb_encode(linear: Float[ArrayLike, "*shape"]) -> Float[Array, "*shape"]:
     x = jnp.where(x < 0, 0.0, jnp.where(x > 1, 1.0, x))
     power = x > _SRGB_THRESHOLD
     x_safe = jnp.where(power, x, 1.0)
-    return jnp.where(power, 1.055 * x_safe ** (1 / 2.4) - 0.055, 12.92 * x)
+    # exp(log(x)/2.4): the same power (a few ulp), but XLA's CPU pow is ~3× slower
+    return jnp.where(power, 1.055 * jnp.exp(jnp.log(x_safe) * (1 / 2.4)) - 0.055, 12.92 * x)
 
 
 def xyz_to_srgb_linear_matrix() -> Float[np.ndarray, "3 3"]:

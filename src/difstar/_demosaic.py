@@ -15,7 +15,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ._cfa import bayer_masks_np, check_pattern
+from ._cfa import _parity, check_pattern
 from ._custom_types import Array, Float
 
 METHODS = ("malvar2004", "bilinear")
@@ -46,25 +46,22 @@ _RB_BB_BR_RR = np.array(
 ) / 8
 
 
-def _convolve_reflect(x: Float[Array, "c h w"], kernels: np.ndarray) -> Float[Array, "c h w"]:
-    """Channel c convolved with kernels[c] (true convolution, odd square kernels), borders
-    as scipy.ndimage.convolve(mode="reflect")."""
-    r = kernels.shape[-1] // 2
-    h, w = x.shape[-2:]
-    xp = jnp.pad(x, ((0, 0), (r, r), (r, r)), mode="symmetric")
-    # A sum of shifted slices, one per non-zero tap (XLA fuses it into one pass; its CPU
-    # grouped convolution ran ~10× slower). Convolution: out[y] = Σ_t k[t] x[y − t], so
-    # tap (i, j) of the kernel reads the padded input at offset (2r − i, 2r − j).
+def _filter(xp: Array, kernel: np.ndarray, shape: tuple[int, int]) -> Array:
+    """One true convolution of the padded plane(s) ``xp`` (pad r = kernel radius) by an
+    odd square ``kernel``, as a sum of shifted slices over its nonzero taps only."""
+    r = kernel.shape[-1] // 2
+    h, w = shape
     out = None
-    for i in range(2 * r + 1):
-        for j in range(2 * r + 1):
-            k = kernels[:, i, j]
-            if not np.any(k):
-                continue
-            term = jnp.asarray(k, x.dtype)[:, None, None] * xp[:, 2 * r - i : 2 * r - i + h,
-                                                               2 * r - j : 2 * r - j + w]
-            out = term if out is None else out + term
+    for i, j in zip(*np.nonzero(kernel)):
+        term = float(kernel[i, j]) * xp[..., 2 * r - i : 2 * r - i + h, 2 * r - j : 2 * r - j + w]
+        out = term if out is None else out + term
     return out
+
+
+def _pad_reflect(x: Array, r: int) -> Array:
+    """Pad the last two axes by r as scipy.ndimage's mode "reflect" (half-sample
+    symmetric) does."""
+    return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((r, r), (r, r)), mode="symmetric")
 
 
 def _check_cfa(cfa) -> None:
@@ -72,11 +69,28 @@ def _check_cfa(cfa) -> None:
         raise ValueError(f"cfa must be a 2-D mosaic of at least 2×2 pixels, got shape {cfa.shape}")
 
 
+def _sites(shape: tuple[int, int], pattern: str):
+    """Boolean (h, w) arrays, built from iotas (no constants): R sites, B sites, rows
+    holding R, columns holding R, rows holding B, columns holding B."""
+    rows, cols = _parity(shape)
+    r_at = pattern.index("R")
+    b_at = pattern.index("B")
+    r_row, r_col, b_row, b_col = r_at // 2, r_at % 2, b_at // 2, b_at % 2
+    r_rows, r_cols = rows == r_row, cols == r_col
+    b_rows, b_cols = rows == b_row, cols == b_col
+    return r_rows & r_cols, b_rows & b_cols, r_rows, r_cols, b_rows, b_cols
+
+
 def demosaic_bilinear(cfa: Float[Array, "h w"], pattern: str) -> Float[Array, "3 h w"]:
     """Bilinear demosaic of a Bayer mosaic → (3, h, w) RGB in the units of ``cfa``."""
     _check_cfa(cfa)
-    masks = jnp.asarray(bayer_masks_np(cfa.shape, pattern), dtype=cfa.dtype)
-    return _convolve_reflect(cfa[None] * masks, np.stack([_H_RB, _H_G, _H_RB]))
+    check_pattern(pattern)
+    r_m, b_m, *_ = _sites(cfa.shape, pattern)
+    zero = jnp.zeros_like(cfa)
+    planes = jnp.stack([jnp.where(r_m, cfa, zero), jnp.where(r_m | b_m, zero, cfa),
+                        jnp.where(b_m, cfa, zero)])
+    xp = _pad_reflect(planes, 1)
+    return jnp.stack([_filter(xp[c], k, cfa.shape) for c, k in enumerate((_H_RB, _H_G, _H_RB))])
 
 
 def demosaic_malvar2004(cfa: Float[Array, "h w"], pattern: str) -> Float[Array, "3 h w"]:
@@ -86,25 +100,16 @@ def demosaic_malvar2004(cfa: Float[Array, "h w"], pattern: str) -> Float[Array, 
     edges of bright features.
     """
     _check_cfa(cfa)
-    r_m, g_m, b_m = bayer_masks_np(cfa.shape, pattern).astype(bool)
-    filt = _convolve_reflect(
-        jnp.broadcast_to(cfa, (4, *cfa.shape)),
-        np.stack([_GR_GB, _RG_RB_BG_BR, _RG_BR_BG_RB, _RB_BB_BR_RR]),
-    )
-    g_at_rb, rb_g_rbbr, rb_g_brrb, rb_at_br = filt[0], filt[1], filt[2], filt[3]
-
-    # Rows/columns holding R or B pixels, built exactly as colour-demosaicing does.
-    r_rows = np.broadcast_to(np.any(r_m, axis=1)[:, None], cfa.shape)
-    r_cols = np.broadcast_to(np.any(r_m, axis=0)[None, :], cfa.shape)
-    b_rows = np.broadcast_to(np.any(b_m, axis=1)[:, None], cfa.shape)
-    b_cols = np.broadcast_to(np.any(b_m, axis=0)[None, :], cfa.shape)
+    check_pattern(pattern)
+    xp = _pad_reflect(cfa, 2)
+    g_at_rb, rb_g_rbbr, rb_g_brrb, rb_at_br = (
+        _filter(xp, k, cfa.shape) for k in (_GR_GB, _RG_RB_BG_BR, _RG_BR_BG_RB, _RB_BB_BR_RR))
+    r_m, b_m, r_rows, r_cols, b_rows, b_cols = _sites(cfa.shape, pattern)
 
     zero = jnp.zeros_like(cfa)
     r = jnp.where(r_m, cfa, zero)
-    g = jnp.where(g_m, cfa, zero)
+    g = jnp.where(r_m | b_m, g_at_rb, cfa)
     b = jnp.where(b_m, cfa, zero)
-
-    g = jnp.where(r_m | b_m, g_at_rb, g)
     r = jnp.where(r_rows & b_cols, rb_g_rbbr, r)
     r = jnp.where(b_rows & r_cols, rb_g_brrb, r)
     b = jnp.where(b_rows & r_cols, rb_g_rbbr, b)
