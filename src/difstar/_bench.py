@@ -305,16 +305,16 @@ def fft_floor(grid, dtype, repeats: int = 3) -> float:
 
     key = jax.random.PRNGKey(0)
     if grid.method == "exact":
-        # the exact path's only FFTs: the linear convolution of PSF and geometric image
-        from ._sampling import fast_length
+        # the exact path's only FFTs: the convolution of PSF and geometric image
+        from ._mft import conv_size, window_rfft2
 
         hb = grid.source_window
-        nh, nw = (fast_length(c + 2 * (hb - 1)) for c in grid.crop)
+        (nh, nw), _ = conv_size(grid.crop, (hb, hb))
         p = jax.random.normal(key, (3, nh, nw), dtype)
 
         @jax.jit
         def conv(p):
-            spec = jnp.fft.rfft2(p) * jnp.fft.rfft2(p[:, :hb, :hb], s=(nh, nw))
+            spec = jnp.fft.rfft2(p) * window_rfft2(p[:, :hb, :hb], (nh, nw))
             return jnp.fft.irfft2(spec, s=(nh, nw))
 
         jax.block_until_ready(conv(p))

@@ -33,6 +33,7 @@ from ._psf import (
 )
 from ._pupil import AbstractPupil
 from ._sensor import Response, sensor
+from ._xla import stored
 
 PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 METHODS = ("fft", "exact")
@@ -342,7 +343,10 @@ def _exact_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
 def _finish(camera: Camera, scene: Scene, grid: Grid, g: Geometry, psfs, image) -> Prediction:
     sen = camera.sensor
     image = image + scene.background[:, None, None]
-    zeta = sensor(image, exposure_time=scene.exposure_time, phi0=sen.phi0, response=sen.response)
+    # stored apart (see _xla.stored): ζ is an output and the mosaic's input; otherwise the
+    # mosaic re-evaluates it and its square roots and exponentials are stored as arrays
+    zeta = stored(lambda a: sensor(a[0], exposure_time=a[1], phi0=a[2], response=a[3]),
+                  (image, scene.exposure_time, sen.phi0, sen.response), sen.phi0[0])
     cfa = mosaic(zeta, sen.pattern)
     srgb = None
     if not grid.raw_only:

@@ -30,6 +30,7 @@ import numpy as np
 
 from ._custom_types import Array, Float
 from ._psf import bin_pixels
+from ._xla import stored
 
 _SMALL = 2e-2  # |k·d| (k·t L) below which an edge's term uses its series form
 
@@ -71,12 +72,15 @@ def _edge_parts(w, u, t, tabs):
         p = uu * dy - tt * dx
         q = uu * dx + tt * dy
         small = jnp.abs(q) < _SMALL
-        r = p / jnp.where(small, 1.0, q)
+        qs = jnp.where(small, 1.0, q)
         h2 = 0.25 * q * q
         sp = 0.5 * p * (1.0 + h2 * (1.0 / 3.0 + h2 * (2.0 / 15.0)))
         (ar, ai), (br, bi) = E[e], E[f]
-        re = re + jnp.where(small, sp * (ar + br), r * (ai - bi))
-        im = im + jnp.where(small, sp * (ai + bi), r * (br - ar))
+        # p/q is written twice (as p/q and −p/q): XLA's CPU fusion will not fuse a
+        # division whose value its consumer reads twice, and would store a plane of it
+        # per edge (memory-bound: 3–6× slower); two single-use divisions fuse
+        re = re + jnp.where(small, sp * (ar + br), (p / qs) * (ai - bi))
+        im = im + jnp.where(small, sp * (ai + bi), (-p / qs) * (ar - br))
         edges.append((p, q, small, E[e], E[f]))
     return re, im, edges
 
@@ -123,79 +127,167 @@ def _intensity_fwd(w, u, t):
     return out, (w, tabs)
 
 
+def _vertex_exp(tabs, j):
+    """E_j = e^{−i k·w_j} on the outer grid, as (re, im), from the 1-D tables."""
+    cx, sx, cy, sy = tabs
+    return (cy[j][:, None] * cx[j][None, :] - sy[j][:, None] * sx[j][None, :],
+            -(sy[j][:, None] * cx[j][None, :] + cy[j][:, None] * sx[j][None, :]))
+
+
 def _intensity_bwd(u, t, res, g):
+    """Gradient of Σ g·|A|² with respect to the vertices, by the shape derivative.
+
+    A = ∫_P e^{−i k·x} dA (= i S/|k|², S the edge sum). Moving vertex j moves its two
+    edges' points linearly (hat functions), so
+        ∂A/∂w_j = N_{j−1} J^b_{j−1} + N_j J^a_j,   N_e = (d_y, −d_x) (d = b − a),
+        J^a = ∫₀¹ (1 − s) e^{−i k·(a + s d)} ds = (Δ − i q E_a)/q² = E_a f(q),
+        J^b = ∫₀¹ s e^{−i k·(a + s d)} ds = (i q E_b − Δ)/q² = E_b f(−q),
+    with q = k·d, Δ = E_a − E_b and f(q) = Σₙ (−iq)ⁿ/(n + 2)! (used where |q| is small,
+    against the cancellation in Δ − i q E_a). With C = 2 g A*, the gradient needs per
+    edge only R^a = Σ_k Re(C J^a) and R^b = Σ_k Re(C J^b): 14 reductions for 7 edges,
+    each with one division, over C stored once (see :func:`._xla.stored`)."""
     w, tabs = res
     n = w.shape[0]
-    re, im, edges = _edge_parts(w, u, t, tabs)
     zero, inv = _inverse_k2(u, t)
-    gz = jnp.where(zero, 0.0, 2.0 * g * (inv * inv))
-    gr, gi = gz * re, gz * im  # cotangents of the edge sum's real and imaginary parts
+
+    def cotangent(ops):  # C = 2 g conj(A) = 2 g conj(i S inv) = s (im + i re)
+        w, tabs, g = ops
+        re, im, _ = _edge_parts(w, u, t, tabs)
+        s = jnp.where(zero, 0.0, -2.0 * g * inv)
+        return s * im, s * re
+
+    cr, ci = stored(cotangent, (w, tabs, g), jnp.sum(w))
     uu, tt = jnp.asarray(u)[None, :], jnp.asarray(t)[:, None]
-
-    def dot(zr, zi):  # Σ Re(conj(gr + i gi) (zr + i zi))
-        return gr * zr + gi * zi
-
-    # per edge: X = ∂T/∂d (d = b − a), Ya/Yb = ∂T/∂E_a · (−i E_a), ∂T/∂E_b · (−i E_b);
-    # then ∂T/∂a = −X + k Ya and ∂T/∂b = X + k Yb
-    xs, ya, yb = [], [], []
-    for p, q, small, (ar, ai), (br, bi) in edges:
-        qs = jnp.where(small, 1.0, q)
-        r = p / qs
+    # series where |q| < lim: terms to (−iq)⁶/8! (truncation q⁷/9!) against the general
+    # form's cancellation (ε/q²): 2e-8 and 5e-7 at 0.5 in float32, 1e-22 and 2e-12 at
+    # 1e-2 in float64
+    lim = 0.5 if jnp.finfo(cr.dtype).bits <= 32 else 1e-2
+    ra, rb = [], []
+    for e in range(n):
+        f = (e + 1) % n
+        dx, dy = w[f, 0] - w[e, 0], w[f, 1] - w[e, 1]
+        q = uu * dx + tt * dy
+        small = jnp.abs(q) < lim
+        q2 = jnp.where(small, 1.0, q * q)
+        h2 = q * q
+        fr = 0.5 - h2 * (1.0 / 24 - h2 * (1.0 / 720 - h2 / 40320))
+        fi = -q * (1.0 / 6 - h2 * (1.0 / 120 - h2 / 5040))
+        (ar, ai), (br, bi) = _vertex_exp(tabs, e), _vertex_exp(tabs, f)
         dr, di = ar - br, ai - bi
-        # general: T = −i r Δ, ∂r/∂d = |k|² (−d_y, d_x)/q² so ∂T/∂d_x ∝ −i (−|k|²d_y/q²) Δ;
-        # written with (p, q) only: ∂r/∂d_x = −(t q + u p)/q², ∂r/∂d_y = (u q − t p)/q²
-        rx = -(tt * q + uu * p) / (qs * qs)
-        ry = (uu * q - tt * p) / (qs * qs)
-        h = 0.5 * q
-        h2 = h * h
-        pp = 1.0 + h2 * (1.0 / 3.0 + h2 * (2.0 / 15.0))
-        dpp = h * (2.0 / 3.0 + h2 * (8.0 / 15.0))  # P'(h)
-        sr, si = ar + br, ai + bi
-        # series: T = (p/2) Σ P(q/2): ∂T/∂d_x = (Σ/2)(−t P + p u P'/2), ∂/∂d_y = (Σ/2)(u P + p t P'/2)
-        cxs = 0.5 * (-tt * pp + 0.5 * p * uu * dpp)
-        cys = 0.5 * (uu * pp + 0.5 * p * tt * dpp)
-        # X = ∂T/∂d: general −i r' Δ = (r' di, −r' dr); series c Σ
-        xr = jnp.where(small, cxs * sr, rx * di)
-        xi = jnp.where(small, cxs * si, -rx * dr)
-        yr_ = jnp.where(small, cys * sr, ry * di)
-        yi_ = jnp.where(small, cys * si, -ry * dr)
-        xs.append((jnp.sum(dot(xr, xi)), jnp.sum(dot(yr_, yi_))))
-        # Y: general Ya = −r E_a, Yb = r E_b; series Ya = (p/2)P (−i E_a) = s (ai, −ar)
-        s = 0.5 * p * pp
-        yar = jnp.where(small, s * ai, -r * ar)
-        yai = jnp.where(small, -s * ar, -r * ai)
-        ybr = jnp.where(small, s * bi, r * br)
-        ybi = jnp.where(small, -s * br, r * bi)
-        ya.append((yar, yai))
-        yb.append((ybr, ybi))
-    grads = []
-    for j in range(n):
-        e_prev = (j - 1) % n
-        zr = ya[j][0] + yb[e_prev][0]
-        zi = ya[j][1] + yb[e_prev][1]
-        gy = dot(zr, zi)
-        gxj = xs[e_prev][0] - xs[j][0] + jnp.sum(gy * uu)
-        gyj = xs[e_prev][1] - xs[j][1] + jnp.sum(gy * tt)
-        grads.append(jnp.stack([gxj, gyj]))
-    gw = jnp.stack(grads)
-    if np.any(u == 0) and np.any(t == 0):  # k = 0: |A|² = area², ∂area/∂w_j = (w_{j+1,y} − w_{j−1,y}, w_{j−1,x} − w_{j+1,x})/2
+        # Re(C Z) = cr Zr − ci Zi; each sum divides once (XLA stores a division that its
+        # consumer reads twice)
+        za_r, za_i = ar * fr - ai * fi, ar * fi + ai * fr  # E_a f(q)
+        zb_r, zb_i = br * fr + bi * fi, bi * fr - br * fi  # E_b conj(f(q))
+        ga = jnp.where(small, cr * za_r - ci * za_i,
+                       (cr * (dr + q * ai) - ci * (di - q * ar)) / q2)
+        gb = jnp.where(small, cr * zb_r - ci * zb_i,
+                       (-cr * (q * bi + dr) - ci * (q * br - di)) / q2)
+        ra.append(jnp.sum(ga))
+        rb.append(jnp.sum(gb))
+    ra, rb = jnp.stack(ra), jnp.stack(rb)
+    d = jnp.roll(w, -1, axis=0) - w
+    normal = jnp.stack([d[:, 1], -d[:, 0]], axis=1)  # N_e, edge e from w_e to w_{e+1}
+    gw = normal * ra[:, None] + jnp.roll(normal * rb[:, None], 1, axis=0)
+    if np.any(u == 0) and np.any(t == 0):  # k = 0: |A|² = area², ∂area/∂w_j = (N_{j−1} + N_j)/2
         g0 = jnp.sum(jnp.where(zero, g, 0.0)) * 2.0 * _area(w)
-        wn, wp = jnp.roll(w, -1, axis=0), jnp.roll(w, 1, axis=0)
-        gw = gw + g0 * 0.5 * jnp.stack([wn[:, 1] - wp[:, 1], wp[:, 0] - wn[:, 0]], axis=1)
+        gw = gw + g0 * 0.5 * (normal + jnp.roll(normal, 1, axis=0))
     return (gw,)
 
 
 polygon_intensity.defvjp(_intensity_fwd, _intensity_bwd)
 
 
-def _mirror_plan(n_fine: int, centre2: int):
-    """Centrosymmetry plan for one axis of fine samples at offsets t_j = j − c (2c =
-    ``centre2``, an integer). Returns the offsets to compute, all ≤ 0 (as 2t), and for
-    each sample j the index into them of t_j (t_j ≤ 0) or of −t_j (t_j > 0)."""
-    t2 = 2 * np.arange(n_fine) - int(centre2)
-    need = np.union1d(t2[t2 <= 0], -t2[t2 > 0])
-    idx = np.searchsorted(need, np.where(t2 <= 0, t2, -t2))
-    return t2, need, idx
+def _fold_axis(g, axis: int, o2: np.ndarray, both: np.ndarray, sign: int):
+    """Place ``g``, indexed along ``axis`` by the offsets ``o2`` (as 2 × offset: a run
+    of step 2), on the offsets ``both`` (a run of step 2 holding every sign·o2),
+    reversed when ``sign`` is −1; zero elsewhere."""
+    if sign < 0:
+        g = jnp.flip(g, axis)
+        o2 = -o2[::-1]
+    lo = int(np.searchsorted(both, o2[0]))
+    cfg = [(0, 0, 0)] * g.ndim
+    cfg[axis] = (lo, both.size - lo - o2.size, 0)
+    return jax.lax.pad(g, jnp.zeros((), g.dtype), cfg)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1, 2))
+def _symmetric_intensity(w, r2, c2):
+    """:func:`polygon_intensity` of each polygon ``w`` (m, n, 2) on rows ``r2``/2 ×
+    columns ``c2``/2 (``r2``, ``c2``: integer runs of step ±2), (m, rows, columns), with a
+    backward pass that uses the centrosymmetry of a real pupil's intensity,
+    I(−k) = I(k).
+
+    The forward evaluates the whole plane, computed once and stored (see
+    :func:`._xla.stored`) as one array. Mirroring a half-plane would halve its
+    arithmetic, but XLA's CPU backend then fuses the closed form into both mirrored
+    copies. The backward pass, several times the forward's work, first folds the
+    cotangent onto the row offsets ≤ 0, so it runs on a half-plane."""
+    u, t = np.asarray(c2 * 0.5, w.dtype), np.asarray(r2 * 0.5, w.dtype)
+
+    def planes(w):  # batched arithmetic, not a stack (a concatenate of the closed forms)
+        return jax.vmap(lambda wi: _intensity_fwd(wi, u, t)[0])(w)
+
+    return stored(planes, w, jnp.sum(w))
+
+
+def _symmetric_fwd(w, r2, c2):
+    return _symmetric_intensity(w, r2, c2), w
+
+
+def _symmetric_bwd(r2, c2, w, g):
+    if r2.size > 1 and r2[1] < r2[0]:  # descending rows (image rows run along −y)
+        g, r2 = jnp.flip(g, 1), r2[::-1]
+    if c2.size > 1 and c2[1] < c2[0]:
+        g, c2 = jnp.flip(g, 2), c2[::-1]
+    rows = np.union1d(r2[r2 <= 0], -r2[r2 > 0])  # every |row offset|, as ≤ 0
+    cols = np.union1d(c2, -c2)
+    m = int(np.sum(r2 <= 0))  # r2 ascends: rows [0, m) hold the offsets ≤ 0
+    u, t = np.asarray(cols * 0.5, w.dtype), np.asarray(rows * 0.5, w.dtype)
+    grads = []
+    for wi, gi in zip(w, g):
+        g_half = 0.0
+        for sl, sign in ((slice(0, m), 1), (slice(m, None), -1)):  # I(t, u) = I(−t, −u)
+            if r2[sl].size:
+                part = _fold_axis(gi[sl], 0, r2[sl], rows, sign)
+                g_half = g_half + _fold_axis(part, 1, c2, cols, sign)
+        grads.append(_intensity_bwd(u, t, (wi, _tables(wi, u, t)), g_half)[0])
+    return (jnp.stack(grads),)
+
+
+_symmetric_intensity.defvjp(_symmetric_fwd, _symmetric_bwd)
+
+
+def polygon_intensities(
+    vertices: Float[Array, "n 2"],
+    wavelengths,
+    *,
+    z_image,
+    pixel_pitch: float,
+    shape: tuple[int, int],
+    oversample: int = 1,
+    centre: tuple[int, int] | None = None,
+) -> tuple[Array, Array]:
+    """(I, s): for each wavelength, the in-focus intensity of a polygonal exit pupil on
+    an (H, W) pixel window centred at pixel ``centre`` (default (H//2, W//2)), exact (no
+    aliasing), integrated over each pixel by a q × q midpoint rule when ``oversample``
+    q > 1, (m, H, W); and the scales (m,) that make it the PSF, ``s[:, None, None] * I``
+    (see :func:`polygon_psf`). Kept apart so that a caller can apply the scale where it
+    costs least."""
+    h, w = shape
+    q = int(oversample)
+    dx = pixel_pitch / q
+    ch, cw = (h // 2, w // 2) if centre is None else (int(centre[0]), int(centre[1]))
+    # fine sample j sits at offset (j − c)·dx from the PSF centre, c = centre·q + (q−1)/2
+    # (the centre of the centre pixel's q × q block); 2c is an integer
+    # (rows run along −y: row offset o sits at y = −o)
+    r2 = (2 * ch * q + q - 1) - 2 * np.arange(h * q)
+    c2 = 2 * np.arange(w * q) - (2 * cw * q + q - 1)
+    # dimensionless: offsets in units of dx, the pupil scaled by β = 2π dx/(λz), so that
+    # k·x = offset·(β x) and |A(k)|² = β⁻⁴ |A_β(offset)|²; with the Parseval scale
+    # (dx/λz)²/area the PSF is |A_β|² / (4π² area_β) (O(1) numbers, safe in float32)
+    wv = jnp.stack([vertices * ((2 * math.pi * dx) / (lam * z_image)) for lam in wavelengths])
+    scale = jnp.stack([1.0 / (4 * math.pi**2 * _area(wi)) for wi in wv])
+    return bin_pixels(_symmetric_intensity(wv, r2, c2), q), scale
 
 
 def polygon_psf(
@@ -210,52 +302,45 @@ def polygon_psf(
 ) -> Float[Array, "h w"]:
     """In-focus PSF of a polygonal exit pupil on an (H, W) pixel window centred at
     pixel ``centre`` (default (H//2, W//2)), exact (no aliasing), integrated over each
-    pixel by a q × q midpoint rule when ``oversample`` q > 1. Normalised physically (Parseval): its sum over the infinite
-    plane is 1, so a window holds the energy that falls in it.
-
-    A real pupil's amplitude obeys A(−k) = A(k)*, so the intensity is centrosymmetric:
-    it is evaluated only for row offsets ≤ 0 (columns of both signs) and mirrored, which
-    halves the work."""
-    h, w = shape
-    q = int(oversample)
-    dx = pixel_pitch / q
-    ch, cw = (h // 2, w // 2) if centre is None else (int(centre[0]), int(centre[1]))
-    # fine sample j sits at offset (j − c)·dx from the PSF centre, c = centre·q + (q−1)/2
-    # (the centre of the centre pixel's q × q block); 2c is an integer
-    t2r, need_r, idx_r = _mirror_plan(h * q, 2 * ch * q + q - 1)
-    t2c, cols, _ = _mirror_plan(w * q, 2 * cw * q + q - 1)
-    cols = np.union1d(t2c, -t2c)  # every column offset and its negative
-    # dimensionless: offsets in units of dx, the pupil scaled by β = 2π dx/(λz), so that
-    # k·x = offset·(β x) and |A(k)|² = β⁻⁴ |A_β(offset)|²; with the Parseval scale
-    # (dx/λz)²/area the PSF is |A_β|² / (4π² area_β) (O(1) numbers, safe in float32)
-    dt = jnp.result_type(vertices.dtype, jnp.float32)
-    beta = (2 * math.pi * dx) / (wavelength * z_image)
-    wv = vertices * beta
-    u = np.asarray(cols * 0.5, dtype=dt)
-    t = np.asarray(-need_r * 0.5, dtype=dt)
-    half = polygon_intensity(wv, u, t) / (4 * math.pi**2 * _area(wv))
-    neg = t2r <= 0
-    top = half[_take(idx_r[neg])][:, _take(np.searchsorted(cols, t2c))]
-    bottom = half[_take(idx_r[~neg])][:, _take(np.searchsorted(cols, -t2c))]
-    # assembled by two slice updates: a concatenate here makes XLA's CPU backend fuse the
-    # whole closed-form evaluation into it and run ~8× slower
-    inten = jnp.zeros((h * q, w * q), half.dtype)
-    inten = jax.lax.dynamic_update_slice(inten, top, (0, 0))
-    inten = jax.lax.dynamic_update_slice(inten, bottom, (top.shape[0], 0))
-    return bin_pixels(inten, q)
+    pixel by a q × q midpoint rule when ``oversample`` q > 1. Normalised physically
+    (Parseval): its sum over the infinite plane is 1, so a window holds the energy that
+    falls in it. Its gradient runs on a half-plane (a real pupil's intensity is
+    centrosymmetric)."""
+    inten, scale = polygon_intensities(vertices, [wavelength], z_image=z_image,
+                                       pixel_pitch=pixel_pitch, shape=shape,
+                                       oversample=oversample, centre=centre)
+    return inten[0] * scale[0]
 
 
-def _take(idx: np.ndarray):
-    """A static index array as a slice where it is a run of step ±1 (an XLA slice and
-    reverse, far cheaper on the CPU than a gather), else the array itself."""
-    if idx.size == 0:
-        return slice(0, 0)
-    if idx.size == 1 or np.all(np.diff(idx) == 1):
-        return slice(int(idx[0]), int(idx[-1]) + 1)
-    if np.all(np.diff(idx) == -1):
-        stop = int(idx[-1]) - 1
-        return slice(int(idx[0]), None if stop < 0 else stop, -1)
-    return idx
+def conv_size(crop: tuple[int, int], window: tuple[int, int]):
+    """((nh, nw), clean): the FFT size of :func:`focused_image`'s convolution of a
+    ``window`` (hb, wb) source with the PSF on a ``crop`` (h, w), and whether the PSF is
+    evaluated on that whole FFT grid.
+
+    The crop needs the PSF on kh × kw = (h + hb − 1) × (w + wb − 1) offsets. Evaluated on
+    a whole n ≥ kh grid, centred at kh//2, PSF index i (offset i − kh//2) and source
+    index j (offset j − hb//2) land on output index (i + j) mod n, and the crop is
+    [r0, r0 + h), r0 = kh//2 + hb//2 − h//2. A wrapped pair (i + j ≥ n) lands below
+    i + j − n < hb − 1 ≤ r0, and an unneeded PSF index (i ≥ kh) on [kh, n) ∪ [0, hb − 1):
+    outside the crop whenever r0 ≥ hb − 1 and r0 + h ≤ kh ("clean": even crops with odd
+    windows), so n = kh suffices. Otherwise the PSF is zero-padded and the convolution
+    made linear: n ≥ kh + hb − 1."""
+    from ._sampling import fast_length
+
+    (h, w), (hb, wb) = crop, window
+    kh, kw = h + hb - 1, w + wb - 1
+    r0 = kh // 2 + hb // 2 - h // 2
+    c0 = kw // 2 + wb // 2 - w // 2
+    clean = r0 >= hb - 1 and r0 + h <= kh and c0 >= wb - 1 and c0 + w <= kw
+    if clean:
+        return (fast_length(kh), fast_length(kw)), True
+    return (fast_length(kh + hb - 1), fast_length(kw + wb - 1)), False
+
+
+def window_rfft2(b, shape: tuple[int, int]):
+    """``jnp.fft.rfft2(b, s=shape)`` of a small window ``b`` (…, hb, wb): the row
+    transforms run only over its hb rows (the zero rows transform to zero)."""
+    return jnp.fft.fft(jnp.fft.rfft(b, n=shape[1], axis=-1), n=shape[0], axis=-2)
 
 
 def focused_image(
@@ -276,35 +361,34 @@ def focused_image(
     (h + hb − 1) × (w + wb − 1) offsets the crop needs and the convolution is linear
     (zero-padded real FFT of a fast size).
     """
-    from ._sampling import fast_length
-
     h, w = crop
     hb, wb = b.shape[-2:]
+    (nh, nw), clean = conv_size(crop, (hb, wb))
     kh, kw = h + hb - 1, w + wb - 1  # PSF offsets needed, centred at (kh//2, kw//2)
-    nh, nw = fast_length(kh + hb - 1), fast_length(kw + wb - 1)
-    b_ft = jnp.fft.rfft2(b, s=(nh, nw))  # once for all channels
-    # full[i + j] pairs PSF index i (offset i − kh//2) with b index j (offset j − hb//2);
-    # PSF indices i ≥ kh land on output rows [kh, nh) ∪ [0, hb − 1): outside the crop
-    # [r0, r0 + h) when these hold (always, for even crops and odd source windows)
     r0 = kh // 2 + hb // 2 - h // 2
     c0 = kw // 2 + wb // 2 - w // 2
-    clean = r0 >= hb - 1 and r0 + h <= kh and c0 >= wb - 1 and c0 + w <= kw
-    psfs, imgs = [], []
-    for c in range(3):
+    b_ft = window_rfft2(b, (nh, nw))  # once for all channels
+
+    def intensities(shape, centre):
+        return polygon_intensities(vertices, [wavelengths[c] for c in range(b.shape[0])],
+                                   z_image=z_image, pixel_pitch=pixel_pitch, shape=shape,
+                                   oversample=oversample, centre=centre)
+
+    if clean:
         # The PSF on the whole (nh, nw) FFT grid, centred at (kh//2, kw//2): indices
         # beyond the kh × kw offsets the crop needs wrap only onto output indices outside
         # the crop, so they need no zeroing and the transform needs no zero padding
-        # (XLA's CPU backend fuses the closed form into a pad and runs it ~6× slower).
-        if clean:
-            p = polygon_psf(vertices, wavelength=wavelengths[c], z_image=z_image,
-                            pixel_pitch=pixel_pitch, shape=(nh, nw), oversample=oversample,
-                            centre=(kh // 2, kw // 2))
-            p_ft = jnp.fft.rfft2(p)
-        else:  # (odd crops or even source windows) zero-pad instead
-            p = polygon_psf(vertices, wavelength=wavelengths[c], z_image=z_image,
-                            pixel_pitch=pixel_pitch, shape=(kh, kw), oversample=oversample)
-            p_ft = jnp.fft.rfft2(p, s=(nh, nw))
-        full = jnp.fft.irfft2(p_ft * b_ft[c], s=(nh, nw))
-        imgs.append(full[r0 : r0 + h, c0 : c0 + w])
-        psfs.append(p[kh // 2 - h // 2 : kh // 2 - h // 2 + h, kw // 2 - w // 2 : kw // 2 - w // 2 + w])
-    return jnp.stack(psfs), jnp.stack(imgs)
+        inten, scale = intensities((nh, nw), (kh // 2, kw // 2))
+        p_ft = jnp.fft.rfft2(inten)
+    else:  # (odd crops or even source windows) zero-pad instead
+        inten, scale = intensities((kh, kw), None)
+        p_ft = jnp.fft.rfft2(inten, s=(nh, nw))
+    # the PSF's scale applied to the source's transform (the smaller array)
+    full = jnp.fft.irfft2(p_ft * (b_ft * scale[:, None, None]), s=(nh, nw))
+    # the crop of the PSFs, taken apart (see _xla.stored): as a plain slice beside the FFT, XLA
+    # would evaluate the closed form for it a second time
+    i0, j0 = kh // 2 - h // 2, kw // 2 - w // 2
+    psfs = stored(lambda x: x[..., i0 : i0 + h, j0 : j0 + w], inten, jnp.sum(vertices))
+    psfs = psfs * scale[:, None, None]
+    return psfs, full[:, r0 : r0 + h, c0 : c0 + w]
+

@@ -85,12 +85,12 @@ def sampling_report(
     return fails
 
 
-def bin_pixels(fine: Float[Array, "hq wq"], q: int) -> Float[Array, "h w"]:
+def bin_pixels(fine: Float[Array, "*b hq wq"], q: int) -> Float[Array, "*b h w"]:
     """Integrate (sum) q × q blocks: the box of one pixel pitch."""
     if q == 1:
         return fine
-    hq, wq = fine.shape
-    return fine.reshape(hq // q, q, wq // q, q).sum(axis=(1, 3))
+    *lead, hq, wq = fine.shape
+    return fine.reshape(*lead, hq // q, q, wq // q, q).sum(axis=(-3, -1))
 
 
 def block_centring_shift(n: int, q: int) -> float:
