@@ -288,6 +288,10 @@ def _best(fn, repeats: int) -> float:
 
 
 def _mem(compiled) -> int:
+    """XLA's peak memory estimate of a compiled program (arguments, outputs and
+    temporaries), -1 where the backend gives none. ``compiled`` is a JAX ``Compiled`` or
+    equinox's wrapper of one (which holds it as ``.compiled``)."""
+    compiled = getattr(compiled, "compiled", compiled)
     try:
         m = compiled.memory_analysis()
         return int(m.temp_size_in_bytes + m.argument_size_in_bytes + m.output_size_in_bytes)
@@ -579,8 +583,10 @@ def run(*, quick: bool = False, configs=("focused", "defocused"), accuracies=Non
             _log("  difstar default: exact in-focus path (no grid) ...")
             pred, t = time_difstar(camera32, scene32, default, repeats)
             le, se = errors(np.asarray(pred.image, float))
-            rows.append(Row(config, "difstar default (exact in-focus path)",
-                            default.crop[0] + 2 * (default.source_window - 1), 1, None, le, se,
+            from ._mft import conv_size
+
+            (n_conv, _), _ = conv_size(default.crop, (default.source_window,) * 2)
+            rows.append(Row(config, "difstar default (exact in-focus path)", n_conv, 1, None, le, se,
                             t.forward_s, t.compile_s, t.grad_s, t.grad_compile_s,
                             t.fft_floor_s, t.peak_bytes / 2**20, t.grad_peak_bytes / 2**20))
             _log(f"    fwd {t.forward_s:.3f} s, grad {t.grad_s:.3f} s, FFT floor "

@@ -197,32 +197,12 @@ def _intensity_bwd(u, t, res, g):
 polygon_intensity.defvjp(_intensity_fwd, _intensity_bwd)
 
 
-def _fold_axis(g, axis: int, o2: np.ndarray, both: np.ndarray, sign: int):
-    """Place ``g``, indexed along ``axis`` by the offsets ``o2`` (as 2 × offset: a run
-    of step 2), on the offsets ``both`` (a run of step 2 holding every sign·o2),
-    reversed when ``sign`` is −1; zero elsewhere."""
-    if sign < 0:
-        g = jnp.flip(g, axis)
-        o2 = -o2[::-1]
-    lo = int(np.searchsorted(both, o2[0]))
-    cfg = [(0, 0, 0)] * g.ndim
-    cfg[axis] = (lo, both.size - lo - o2.size, 0)
-    return jax.lax.pad(g, jnp.zeros((), g.dtype), cfg)
-
-
 @functools.partial(jax.custom_vjp, nondiff_argnums=(1, 2))
-def _symmetric_intensity(w, r2, c2):
-    """:func:`polygon_intensity` of each polygon ``w`` (m, n, 2) on rows ``r2``/2 ×
-    columns ``c2``/2 (``r2``, ``c2``: integer runs of step ±2), (m, rows, columns), with a
-    backward pass that uses the centrosymmetry of a real pupil's intensity,
-    I(−k) = I(k).
-
-    The forward evaluates the whole plane, computed once and stored (see
-    :func:`._xla.stored`) as one array. Mirroring a half-plane would halve its
-    arithmetic, but XLA's CPU backend then fuses the closed form into both mirrored
-    copies. The backward pass, several times the forward's work, first folds the
-    cotangent onto the row offsets ≤ 0, so it runs on a half-plane."""
-    u, t = np.asarray(c2 * 0.5, w.dtype), np.asarray(r2 * 0.5, w.dtype)
+def _intensity_planes(w, u, t):
+    """:func:`polygon_intensity` of each polygon ``w`` (m, n, 2) on rows ``t`` × columns
+    ``u``, (m, len t, len u), computed once and stored as one array (see
+    :func:`._xla.stored`: under differentiation the intensity has consumers besides the
+    PSF's, each of which would re-evaluate it)."""
 
     def planes(w):  # batched arithmetic, not a stack (a concatenate of the closed forms)
         return jax.vmap(lambda wi: _intensity_fwd(wi, u, t)[0])(w)
@@ -230,31 +210,43 @@ def _symmetric_intensity(w, r2, c2):
     return stored(planes, w, jnp.sum(w))
 
 
-def _symmetric_fwd(w, r2, c2):
-    return _symmetric_intensity(w, r2, c2), w
+def _planes_fwd(w, u, t):
+    return _intensity_planes(w, u, t), w
 
 
-def _symmetric_bwd(r2, c2, w, g):
-    if r2.size > 1 and r2[1] < r2[0]:  # descending rows (image rows run along −y)
-        g, r2 = jnp.flip(g, 1), r2[::-1]
-    if c2.size > 1 and c2[1] < c2[0]:
-        g, c2 = jnp.flip(g, 2), c2[::-1]
+def _planes_bwd(u, t, w, g):
+    return (jnp.stack([_intensity_bwd(u, t, (wi, _tables(wi, u, t)), gi)[0]
+                       for wi, gi in zip(w, g)]),)
+
+
+_intensity_planes.defvjp(_planes_fwd, _planes_bwd)
+
+
+def _run(x, axis: int, idx: np.ndarray):
+    """``x`` at the static indices ``idx`` (a run of step ±1) along ``axis``, as a slice."""
+    lo, hi = int(idx.min()), int(idx.max()) + 1
+    x = jax.lax.slice_in_dim(x, lo, hi, axis=axis)
+    return jnp.flip(x, axis) if idx.size > 1 and idx[1] < idx[0] else x
+
+
+def _symmetric_intensity(w, r2, c2):
+    """:func:`polygon_intensity` of each polygon ``w`` (m, n, 2) on rows ``r2``/2 ×
+    columns ``c2``/2 (``r2``, ``c2``: integer runs of step ±2), (m, rows, columns).
+
+    A real pupil's intensity is centrosymmetric, I(−k) = I(k): it is evaluated on the
+    row offsets ≤ 0 only (every column offset and its negative) and mirrored. Its
+    gradient (autodiff of the mirror) folds the cotangent back onto that half-plane."""
     rows = np.union1d(r2[r2 <= 0], -r2[r2 > 0])  # every |row offset|, as ≤ 0
     cols = np.union1d(c2, -c2)
-    m = int(np.sum(r2 <= 0))  # r2 ascends: rows [0, m) hold the offsets ≤ 0
-    u, t = np.asarray(cols * 0.5, w.dtype), np.asarray(rows * 0.5, w.dtype)
-    grads = []
-    for wi, gi in zip(w, g):
-        g_half = 0.0
-        for sl, sign in ((slice(0, m), 1), (slice(m, None), -1)):  # I(t, u) = I(−t, −u)
-            if r2[sl].size:
-                part = _fold_axis(gi[sl], 0, r2[sl], rows, sign)
-                g_half = g_half + _fold_axis(part, 1, c2, cols, sign)
-        grads.append(_intensity_bwd(u, t, (wi, _tables(wi, u, t)), g_half)[0])
-    return (jnp.stack(grads),)
-
-
-_symmetric_intensity.defvjp(_symmetric_fwd, _symmetric_bwd)
+    half = _intensity_planes(w, np.asarray(cols * 0.5, w.dtype), np.asarray(rows * 0.5, w.dtype))
+    parts = []
+    for sel, sign in ((r2 > 0, -1), (r2 <= 0, 1)):  # I(t, u) = I(−t, −u)
+        if np.any(sel):
+            block = _run(half, 1, np.searchsorted(rows, sign * r2[sel]))
+            parts.append(_run(block, 2, np.searchsorted(cols, sign * c2)))
+    if r2.size > 1 and r2[1] > r2[0]:  # ascending rows: the t ≤ 0 block comes first
+        parts = parts[::-1]
+    return jnp.concatenate(parts, axis=1) if len(parts) > 1 else parts[0]
 
 
 def polygon_intensities(
