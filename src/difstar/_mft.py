@@ -49,23 +49,25 @@ def _tables(w, u, t):
     return jax.lax.scan(body, 0, w)[1]
 
 
-def _edge_parts(w, u, t, tabs):
-    """The Lee–Mittra edge sum Σ_e T_e on the outer grid (t rows) × (u columns), as (re,
-    im), with everything an edge needs for its derivatives: per edge (p, q, small, Ea,
-    Eb), E = e^{−i k·v} of the edge's start and end vertex.
+def _vertex_exp(tabs, j):
+    """E_j = e^{−i k·w_j} on the outer grid, as (re, im), from the 1-D tables."""
+    cx, sx, cy, sy = tabs
+    return (cy[j][:, None] * cx[j][None, :] - sy[j][:, None] * sx[j][None, :],
+            -(sy[j][:, None] * cx[j][None, :] + cy[j][:, None] * sx[j][None, :]))
+
+
+def _edge_sum(w, u, t, tabs):
+    """The Lee–Mittra edge sum S = Σ_e T_e on the outer grid (t rows) × (u columns), as
+    (re, im); the transform is A = i S/|k|².
 
     With d = b − a the edge vector, p = k × d (= k·n L) and q = k·d (= k·t L):
         T = −i (p/q) (E_a − E_b)                      (general)
         T = (p/2) (E_a + E_b) P(q/2),  P(h) = 1 + h²/3 + 2h⁴/15 ≈ tan(h)/h   (|q| small)
-    so an edge's term depends only on its direction and its two vertex exponentials."""
-    cx, sx, cy, sy = tabs
+    with E = e^{−i k·v} of the edge's start and end vertex."""
     n = w.shape[0]
     uu, tt = jnp.asarray(u)[None, :], jnp.asarray(t)[:, None]
-    E = [(cy[j][:, None] * cx[j][None, :] - sy[j][:, None] * sx[j][None, :],
-          -(sy[j][:, None] * cx[j][None, :] + cy[j][:, None] * sx[j][None, :]))
-         for j in range(n)]
+    E = [_vertex_exp(tabs, j) for j in range(n)]
     re = im = 0.0
-    edges = []
     for e in range(n):
         f = (e + 1) % n
         dx, dy = w[f, 0] - w[e, 0], w[f, 1] - w[e, 1]
@@ -81,8 +83,7 @@ def _edge_parts(w, u, t, tabs):
         # per edge (memory-bound: 3–6× slower); two single-use divisions fuse
         re = re + jnp.where(small, sp * (ar + br), (p / qs) * (ai - bi))
         im = im + jnp.where(small, sp * (ai + bi), (-p / qs) * (ar - br))
-        edges.append((p, q, small, E[e], E[f]))
-    return re, im, edges
+    return re, im
 
 
 def _area(w):
@@ -120,18 +121,11 @@ def polygon_intensity(w, u, t):
 
 def _intensity_fwd(w, u, t):
     tabs = _tables(w, u, t)
-    re, im, _ = _edge_parts(w, u, t, tabs)
+    re, im = _edge_sum(w, u, t, tabs)
     zero, inv = _inverse_k2(u, t)
     area = _area(w)
     out = jnp.where(zero, area * area, (re * re + im * im) * (inv * inv))
     return out, (w, tabs)
-
-
-def _vertex_exp(tabs, j):
-    """E_j = e^{−i k·w_j} on the outer grid, as (re, im), from the 1-D tables."""
-    cx, sx, cy, sy = tabs
-    return (cy[j][:, None] * cx[j][None, :] - sy[j][:, None] * sx[j][None, :],
-            -(sy[j][:, None] * cx[j][None, :] + cy[j][:, None] * sx[j][None, :]))
 
 
 def _intensity_bwd(u, t, res, g):
@@ -152,7 +146,7 @@ def _intensity_bwd(u, t, res, g):
 
     def cotangent(ops):  # C = 2 g conj(A) = 2 g conj(i S inv) = s (im + i re)
         w, tabs, g = ops
-        re, im, _ = _edge_parts(w, u, t, tabs)
+        re, im = _edge_sum(w, u, t, tabs)
         s = jnp.where(zero, 0.0, -2.0 * g * inv)
         return s * im, s * re
 
