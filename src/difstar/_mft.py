@@ -113,8 +113,8 @@ def polygon_intensity(w, u, t):
 
     Exact (Lee & Mittra), finite with finite gradients everywhere, k = 0 and the
     directions along an edge (where the series form is used) included. Its gradient is
-    written by hand: one pass over the grid per vertex coordinate, instead of autodiff's
-    hundred intermediate planes (the same values to rounding;
+    written by hand (:func:`_intensity_bwd`: the shape derivative, two sums per edge,
+    instead of autodiff's hundred intermediate planes; the same values to rounding,
     tests/test_hard_cases.py checks it against autodiff and finite differences)."""
     return _intensity_plain(w, u, t)
 
@@ -343,9 +343,10 @@ def focused_image(
 
     ``b`` is the geometric image on an (hb, wb) grid centred like the crop (odd sizes
     hold a source centred on the crop's centre pixel); every source pixel reaches every
-    crop pixel through the exact PSF, with no wrap-around: the PSF is evaluated on the
-    (h + hb − 1) × (w + wb − 1) offsets the crop needs and the convolution is linear
-    (zero-padded real FFT of a fast size).
+    crop pixel through the exact PSF, and nothing wraps onto the crop: the PSF is
+    evaluated on the whole FFT grid of :func:`conv_size` (at least the
+    (h + hb − 1) × (w + wb − 1) offsets the crop needs; where that cannot keep wrapped
+    terms off the crop, on exactly those offsets, zero-padded to a linear convolution).
     """
     h, w = crop
     hb, wb = b.shape[-2:]
