@@ -116,12 +116,101 @@ def outline_coverage(
     return total
 
 
-def polygon_coverage(vertices: Float[Array, "n 2"], x: Array, y: Array, cell) -> Array:
+def _axis(c: Array) -> tuple[Array, Array]:
+    """(first centre, signed step) of a uniform axis of cell centres (the step from the
+    ends: the difference of neighbours cancels digits, in float32 enough to misplace the
+    far grid lines by a tenth of a cell)."""
+    c = c.reshape(-1)
+    return c[0], (c[-1] - c[0]) / (c.shape[0] - 1)
+
+
+def _cell_pieces(v0, v1, x, y):
+    """The pieces into which the grid lines cut each edge v0[i] → v1[i], for cells that
+    tile the plane (uniform ``x`` (1, W) and ``y`` (H, 1), spacing = cell side).
+
+    Every grid line an edge crosses is a break in its parameter s ∈ [0, 1]; between
+    consecutive breaks the edge lies in one cell. Returns (s_lo, s_hi, row, col, inside),
+    each (e, W + H + 3): the pieces, their cells (clipped) and whether that cell is on the
+    grid and the piece has length. Primal-only work, O(e (W + H) log(W + H)).
+    """
+    w, h = x.shape[-1], y.shape[0]
+    x0, sx = _axis(x)
+    y0, sy = _axis(y)
+    d = v1 - v0
+
+    def breaks(c0, step, count, a, da):
+        lines = c0 + (jnp.arange(count + 1, dtype=a.dtype) - 0.5) * step
+        ok = (da != 0)[:, None]
+        s = (lines[None, :] - a[:, None]) / jnp.where(ok, da[:, None], 1.0)
+        return jnp.where(ok, jnp.clip(s, 0.0, 1.0), 0.0)
+
+    e = v0.shape[0]
+    s = jnp.concatenate(
+        [jnp.zeros((e, 1), d.dtype), jnp.ones((e, 1), d.dtype),
+         breaks(x0, sx, w, v0[:, 0], d[:, 0]), breaks(y0, sy, h, v0[:, 1], d[:, 1])], axis=1)
+    s = jnp.sort(s, axis=1)
+    lo, hi = s[:, :-1], s[:, 1:]
+    mid = 0.5 * (lo + hi)
+    col = jnp.floor((v0[:, :1] + mid * d[:, :1] - x0) / sx + 0.5).astype(jnp.int32)
+    row = jnp.floor((v0[:, 1:] + mid * d[:, 1:] - y0) / sy + 0.5).astype(jnp.int32)
+    inside = (hi > lo) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    return lo, hi, jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1), inside
+
+
+@jax.custom_jvp
+def tiled_outline_coverage(v0: Float[Array, "e 2"], v1: Float[Array, "e 2"], x: Array,
+                           y: Array, cell) -> Array:
+    """:func:`outline_coverage` on cells that tile the plane: ``x`` (1, W) and ``y`` (H, 1)
+    uniform (ascending or descending, W, H ≥ 2) with spacing equal to ``cell``, as on a
+    square frequency grid. The same values; the derivative is the shape derivative.
+
+    Moving the outline with velocity V changes the area of its intersection with a cell
+    by ∫ V · n ds along the part of the outline inside that cell (n the outward normal),
+    so the coverage's derivative lives on the O(W + H) pieces into which the grid lines
+    cut the edges (:func:`_cell_pieces`), not on the whole plane: the tangent is a
+    scatter of one value per piece, and reverse mode (its transpose) a gather. Moving
+    the cell centres is moving the outline the other way; the cell side follows from
+    the coverage's invariance under scaling everything. Forward and reverse mode both
+    work, and both cost O(W + H) per edge on top of a zero plane, where autodiff of the
+    edge terms costs several passes over the W × H plane per edge.
+    """
+    return outline_coverage(v0, v1, x, y, cell)
+
+
+@tiled_outline_coverage.defjvp
+def _tiled_outline_jvp(primals, tangents):
+    v0, v1, x, y, cell = primals
+    dv0, dv1, dx, dy, dcell = tangents
+    out = tiled_outline_coverage(v0, v1, x, y, cell)
+    h, w = out.shape
+    lo, hi, row, col, inside = _cell_pieces(v0, v1, x, y)
+    d = v1 - v0
+    nx, ny = d[:, 1:], -d[:, :1]  # outward normal of a counter-clockwise outline, × length
+    ds = hi - lo
+    half_sq = 0.5 * (hi * hi - lo * lo)
+    xs, ys = x.reshape(-1), y.reshape(-1)
+    # ∫ (p(s) − c) · n ds over a piece: the cell-side term, by scale invariance
+    lever = ((v0[:, :1] - xs[col]) * nx + (v0[:, 1:] - ys[row]) * ny) * ds
+    cell = jnp.asarray(cell, out.dtype)
+    dcell = jnp.asarray(dcell, out.dtype)
+    speed = ((ds - half_sq) * (dv0[:, :1] * nx + dv0[:, 1:] * ny)
+             + half_sq * (dv1[:, :1] * nx + dv1[:, 1:] * ny)
+             - ds * (dx.reshape(-1)[col] * nx + dy.reshape(-1)[row] * ny)
+             - lever * (dcell / cell))
+    speed = jnp.where(inside, speed, 0.0) / (cell * cell)
+    flat = jnp.zeros(h * w, out.dtype).at[(row * w + col).reshape(-1)].add(speed.reshape(-1))
+    return out, flat.reshape(h, w)
+
+
+def polygon_coverage(vertices: Float[Array, "n 2"], x: Array, y: Array, cell, *,
+                     tiled: bool = False) -> Array:
     """Exact area coverage of a simple counter-clockwise polygon on square cells centred
     at ``x`` (1, W) and ``y`` (H, 1). Exact for convex and non-convex polygons;
     continuous and piecewise polynomial in the vertices, so it is differentiable with
-    respect to them (finite gradients on grid lines and for vertical edges too)."""
-    return outline_coverage(vertices, jnp.roll(vertices, -1, axis=0), x, y, cell)
+    respect to them (finite gradients on grid lines and for vertical edges too).
+    ``tiled=True``: the cells tile the plane (:func:`tiled_outline_coverage`)."""
+    outline = tiled_outline_coverage if tiled else outline_coverage
+    return outline(vertices, jnp.roll(vertices, -1, axis=0), x, y, cell)
 
 
 def convex_polygon_coverage(vertices: Float[Array, "n 2"], x: Array, y: Array, cell) -> Array:
@@ -179,6 +268,12 @@ class AbstractPupil(eqx.Module):
 
     def coverage(self, x: Array, y: Array, cell) -> Array:
         raise NotImplementedError
+
+    def tiled_coverage(self, x: Array, y: Array, cell) -> Array:
+        """``coverage`` where the cells tile the plane (uniform axes, spacing = ``cell``,
+        as on a square frequency grid): the same values; shapes with straight edges then
+        differentiate along their outline only (:func:`tiled_outline_coverage`)."""
+        return self.coverage(x, y, cell)
 
     def max_radius(self) -> Array:
         """Largest distance from the optical axis to the shape's boundary (metres)."""
@@ -243,6 +338,9 @@ class Polygon(AbstractPupil):
     def coverage(self, x, y, cell):
         return polygon_coverage(self.vertices, x, y, cell)
 
+    def tiled_coverage(self, x, y, cell):
+        return polygon_coverage(self.vertices, x, y, cell, tiled=True)
+
     def max_radius(self):
         return jnp.max(_safe_norm(self.vertices[:, 0], self.vertices[:, 1]))
 
@@ -284,6 +382,9 @@ class RegularPolygon(AbstractPupil):
 
     def coverage(self, x, y, cell):
         return polygon_coverage(self.vertices, x, y, cell)
+
+    def tiled_coverage(self, x, y, cell):
+        return polygon_coverage(self.vertices, x, y, cell, tiled=True)
 
     def max_radius(self):
         return self.circumradius
@@ -355,7 +456,12 @@ class Obstructed(AbstractPupil):
     spiders: Spiders | None = None
 
     def coverage(self, x, y, cell):
-        cov = self.outer.coverage(x, y, cell)
+        return self._with_stops(self.outer.coverage(x, y, cell), x, y, cell)
+
+    def tiled_coverage(self, x, y, cell):
+        return self._with_stops(self.outer.tiled_coverage(x, y, cell), x, y, cell)
+
+    def _with_stops(self, cov, x, y, cell):
         if self.obstruction is not None:
             cov = cov * (1.0 - self.obstruction.coverage(x, y, cell))
         if self.spiders is not None:

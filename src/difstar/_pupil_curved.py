@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._custom_types import Array, Float
-from ._pupil import AbstractPupil, _safe_norm, outline_coverage
+from ._pupil import AbstractPupil, _safe_norm, outline_coverage, tiled_outline_coverage
 
 
 def _sinc(a: Array) -> Array:
@@ -245,10 +245,14 @@ class CurvedIris(AbstractPupil):
     # --- AbstractPupil -----------------------------------------------------------------
 
     def coverage(self, x: Array, y: Array, cell) -> Array:
+        return outline_coverage(*self._edges(), x, y, cell)
+
+    def tiled_coverage(self, x: Array, y: Array, cell) -> Array:
+        return tiled_outline_coverage(*self._edges(), x, y, cell)
+
+    def _edges(self):
         p = self.arc_points()
-        v0 = p[:, :-1, :].reshape(-1, 2)
-        v1 = p[:, 1:, :].reshape(-1, 2)
-        return outline_coverage(v0, v1, x, y, cell)
+        return p[:, :-1, :].reshape(-1, 2), p[:, 1:, :].reshape(-1, 2)
 
     def max_radius(self) -> Array:
         p = self.arc_points()
