@@ -55,11 +55,14 @@ def psf_region(pupil, wavelength, geometry, *, pixel_pitch: float, grid, rows: t
                           pupil.area_coverage, m)
     ir = _unshifted(nf, n // 2 + rows[0], rows[1], q)
     ic = _unshifted(nf, n // 2 + cols[0], cols[1], q)
-    # the field (up to a unimodular separable phase): the window's columns first, keeping
-    # only the rows the region needs, then those rows, keeping only its columns
-    g = jnp.fft.ifft(sub, n=nf, axis=0)[ir]
-    field = jnp.fft.ifft(g, n=nf, axis=1)[:, ic]
-    reg = jnp.real(field) ** 2 + jnp.imag(field) ** 2
+    # the field (up to a unimodular separable phase): along the window's rows first,
+    # keeping only the columns the region needs, then along those columns, keeping only
+    # its rows. Both passes run along the last axis: only the smaller (window × region)
+    # array is transposed, and the field comes out transposed (its intensity is turned
+    # back, a region-sized real array).
+    g = jnp.fft.ifft(sub, n=nf, axis=1)[:, ic]
+    field_t = jnp.fft.ifft(g.T, n=nf, axis=1)[:, ir]
+    reg = (jnp.real(field_t) ** 2 + jnp.imag(field_t) ** 2).T
     if pupil.area_coverage:
         wc = 1.0 / np.fft.ifftshift(cell_sinc(nf)) ** 2  # the cell correction, unshifted
         reg = reg * jnp.asarray(wc[ir], reg.dtype)[:, None] * jnp.asarray(wc[ic], reg.dtype)[None, :]
