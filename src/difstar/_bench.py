@@ -341,7 +341,8 @@ def fft_floor(grid, dtype, repeats: int = 3) -> float:
 
         @jax.jit
         def pruned(a, p):
-            field = jnp.fft.ifft(jnp.fft.ifft(a, n=nf, axis=1)[:, :rows], n=nf, axis=2)
+            g = jnp.fft.ifft(a, n=nf, axis=2)[:, :, :rows]  # as _pruned.psf_region lays it out
+            field = jnp.fft.ifft(jnp.swapaxes(g, 1, 2), n=nf, axis=2)[:, :, :rows]
             spec = jnp.fft.rfft2(p) * jnp.fft.rfft2(p[:, :hb, :hb], s=(lh, lw))
             return field, jnp.fft.irfft2(spec, s=(lh, lw))
 
