@@ -375,7 +375,7 @@ def focused_image(
     # the crop of the PSFs, taken apart (see _xla.stored): as a plain slice beside the FFT, XLA
     # would evaluate the closed form for it a second time
     i0, j0 = kh // 2 - h // 2, kw // 2 - w // 2
-    psfs = stored(lambda x: x[..., i0 : i0 + h, j0 : j0 + w], inten, jnp.sum(vertices))
-    psfs = psfs * scale[:, None, None]
+    psfs = stored(lambda a: a[0][..., i0 : i0 + h, j0 : j0 + w] * a[1][:, None, None],
+                  (inten, scale), jnp.sum(vertices))
     return psfs, full[:, r0 : r0 + h, c0 : c0 + w]
 
