@@ -162,7 +162,9 @@ def tiled_outline_coverage(v0: Float[Array, "e 2"], v1: Float[Array, "e 2"], x: 
                            y: Array, cell) -> Array:
     """:func:`outline_coverage` on cells that tile the plane: ``x`` (1, W) and ``y`` (H, 1)
     uniform (ascending or descending, W, H ≥ 2) with spacing equal to ``cell``, as on a
-    square frequency grid. The same values; the derivative is the shape derivative.
+    square frequency grid. The same values; the derivative is the shape derivative, which
+    holds for closed outlines (every v1 is some edge's v0, as for a polygon's edges or a
+    curved iris's arc pieces): pass v0 and v1 built from the same vertices.
 
     Moving the outline with velocity V changes the area of its intersection with a cell
     by ∫ V · n ds along the part of the outline inside that cell (n the outward normal),
