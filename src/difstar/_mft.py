@@ -298,6 +298,15 @@ def polygon_psf(
     return inten[0] * scale[0]
 
 
+def _conv_offsets(crop: tuple[int, int], window: tuple[int, int]):
+    """(kh, kw, r0, c0): the PSF offsets the ``crop`` needs from a ``window`` source,
+    (h + hb − 1) × (w + wb − 1) centred at (kh//2, kw//2), and where the crop starts in
+    the convolution's output (see :func:`conv_size`)."""
+    (h, w), (hb, wb) = crop, window
+    kh, kw = h + hb - 1, w + wb - 1
+    return kh, kw, kh // 2 + hb // 2 - h // 2, kw // 2 + wb // 2 - w // 2
+
+
 def conv_size(crop: tuple[int, int], window: tuple[int, int]):
     """((nh, nw), clean): the FFT size of :func:`focused_image`'s convolution of a
     ``window`` (hb, wb) source with the PSF on a ``crop`` (h, w), and whether the PSF is
@@ -314,9 +323,7 @@ def conv_size(crop: tuple[int, int], window: tuple[int, int]):
     from ._sampling import fast_length
 
     (h, w), (hb, wb) = crop, window
-    kh, kw = h + hb - 1, w + wb - 1
-    r0 = kh // 2 + hb // 2 - h // 2
-    c0 = kw // 2 + wb // 2 - w // 2
+    kh, kw, r0, c0 = _conv_offsets(crop, window)
     clean = r0 >= hb - 1 and r0 + h <= kh and c0 >= wb - 1 and c0 + w <= kw
     if clean:
         return (fast_length(kh), fast_length(kw)), True
@@ -351,9 +358,7 @@ def focused_image(
     h, w = crop
     hb, wb = b.shape[-2:]
     (nh, nw), clean = conv_size(crop, (hb, wb))
-    kh, kw = h + hb - 1, w + wb - 1  # PSF offsets needed, centred at (kh//2, kw//2)
-    r0 = kh // 2 + hb // 2 - h // 2
-    c0 = kw // 2 + wb // 2 - w // 2
+    kh, kw, r0, c0 = _conv_offsets(crop, (hb, wb))  # PSF offsets, centred at (kh//2, kw//2)
     b_ft = window_rfft2(b, (nh, nw))  # once for all channels
 
     def intensities(shape, centre):
