@@ -1,0 +1,476 @@
+"""One validation layer for user input: files, the command line and the Python API.
+
+Every check here raises :class:`InputError` (a ``ValueError``) whose message names the
+field and says what would work, e.g. ``camera/sensor/phi0/1: NaN is not a finite
+number; give a finite number > 0``. The command line turns these into exit code 2 with
+that one line and no traceback.
+
+- JSON: :func:`loads_strict` refuses ``NaN``/``Infinity`` (Python's ``json`` reads them),
+  numbers that overflow to infinity, and documents nested too deeply, naming the field;
+  :func:`check_finite_doc` does the same for a document built in Python.
+- numbers: :func:`check_number` (finite, in range, the field and the fix).
+- physics: :func:`check_camera_scene` (finite, positive where it must be, the object
+  beyond what the lens can focus, an obstruction inside the pupil);
+  :func:`check_polygon_vertices` (simple, counter-clockwise, a figure-8 is called
+  "self-intersecting").
+- the PSF's scalars: :func:`check_psf_inputs` for concrete values (tracers pass through
+  untouched) and :func:`refuse_nonfinite_traced` (``eqx.error_if``) inside jit.
+- sizes: :func:`check_crop` and :func:`memory_budget` (a grid that cannot fit in memory
+  is refused before anything is allocated).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+
+#: deepest JSON nesting a difstar document needs (scene files: 6; manifests: 5)
+MAX_JSON_DEPTH = 32
+#: crop sizes (pixels a side) accepted by the command line and ``choose_grid``
+MIN_CROP = 8
+#: at most this many polygon vertices / iris blades / spider vanes (more are almost
+#: certainly a mistake, and compile for minutes)
+MAX_VERTICES = 1024
+MAX_BLADES = 256
+MAX_SPIDERS = 64
+
+
+class InputError(ValueError):
+    """Invalid user input; the message names the field and the fix."""
+
+
+# ----------------------------------------------------------------------------- JSON
+
+
+class _NonFinite:
+    """What ``json`` hands ``parse_constant`` for NaN / Infinity / -Infinity."""
+
+    __slots__ = ("text",)
+
+    def __init__(self, text: str):
+        self.text = text
+
+    def __repr__(self) -> str:
+        return self.text
+
+
+def _path_str(path: Iterable) -> str:
+    return "/".join(str(p) for p in path) or "(top level)"
+
+
+def _walk(doc: Any):
+    """Yield (path tuple, leaf value) for every leaf, depth first, without recursion."""
+    stack = [((), doc)]
+    while stack:
+        path, v = stack.pop()
+        if isinstance(v, dict):
+            for k in reversed(list(v)):
+                stack.append(((*path, k), v[k]))
+        elif isinstance(v, (list, tuple)):
+            for i in range(len(v) - 1, -1, -1):
+                stack.append(((*path, i), v[i]))
+        else:
+            yield path, v
+
+
+def json_depth(doc: Any) -> int:
+    """Nesting depth of a parsed JSON document (a scalar is 0), without recursion."""
+    deepest = 0
+    stack = [(doc, 0)]
+    while stack:
+        v, d = stack.pop()
+        if isinstance(v, dict):
+            stack.extend((x, d + 1) for x in v.values())
+            deepest = max(deepest, d + 1)
+        elif isinstance(v, (list, tuple)):
+            stack.extend((x, d + 1) for x in v)
+            deepest = max(deepest, d + 1)
+    return deepest
+
+
+def _bad_number(v) -> str | None:
+    """Why ``v`` is not a usable number, or None (non-numbers are the schema's job)."""
+    if isinstance(v, _NonFinite):
+        return f"{v.text} is not a finite number (JSON has no NaN or Infinity)"
+    if isinstance(v, bool):
+        return None
+    if isinstance(v, (float, np.floating)):
+        if not math.isfinite(float(v)):
+            return f"{float(v)!r} is not a finite number"
+    elif isinstance(v, (int, np.integer)):
+        if abs(int(v)) > 2**53:
+            return f"{v} is too large to be a number difstar can use"
+    elif isinstance(v, np.ndarray) and v.dtype.kind in "fc":
+        if not np.all(np.isfinite(v)):
+            return "contains NaN or infinity"
+    return None
+
+
+def check_finite_doc(doc: Any, *, source: str = "<document>") -> None:
+    """Refuse a document (parsed JSON or built in Python) holding a non-finite or
+    overflowing number, or nested deeper than :data:`MAX_JSON_DEPTH`."""
+    depth = json_depth(doc)
+    if depth > MAX_JSON_DEPTH:
+        raise InputError(
+            f"{source}: the document is nested {depth} levels deep; a difstar document "
+            f"needs at most {MAX_JSON_DEPTH} (check the brackets)."
+        )
+    for path, v in _walk(doc):
+        why = _bad_number(v)
+        if why:
+            raise InputError(f"{source}: field {_path_str(path)}: {why}; give a finite number.")
+
+
+def loads_strict(text: str, *, source: str = "<document>") -> Any:
+    """``json.loads`` that refuses NaN, Infinity, numbers that overflow and deep nesting,
+    with the field's path in the message (:class:`InputError`)."""
+    try:
+        doc = json.loads(text, parse_constant=_NonFinite)
+    except RecursionError:
+        raise InputError(
+            f"{source}: the JSON is nested too deeply to read; a difstar document needs "
+            f"at most {MAX_JSON_DEPTH} levels (check the brackets)."
+        ) from None
+    except json.JSONDecodeError as exc:
+        raise InputError(
+            f"{source}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
+        ) from None
+    except ValueError as exc:  # e.g. an integer with more digits than Python converts
+        raise InputError(f"{source}: not valid JSON: {exc}") from None
+    check_finite_doc(doc, source=source)
+    return doc
+
+
+# -------------------------------------------------------------------------- numbers
+
+
+def _fmt(x) -> str:
+    try:
+        return f"{float(x):.6g}"
+    except (TypeError, ValueError, OverflowError):
+        return repr(x)
+
+
+def check_number(value, field: str, *, gt=None, ge=None, lt=None, le=None,
+                 integer: bool = False, unit: str = "", fix: str | None = None) -> float:
+    """A finite number within the given limits, or :class:`InputError` naming ``field``
+    and what would work. Returns it as a float (an int when ``integer``)."""
+    limits = []
+    if gt is not None:
+        limits.append(f"> {_fmt(gt)}")
+    if ge is not None:
+        limits.append(f">= {_fmt(ge)}")
+    if lt is not None:
+        limits.append(f"< {_fmt(lt)}")
+    if le is not None:
+        limits.append(f"<= {_fmt(le)}")
+    want = ("an integer" if integer else "a finite number") + (
+        " " + " and ".join(limits) if limits else "") + (f" {unit}" if unit else "")
+    tail = f"; give {want}" + (f" ({fix})" if fix else "") + "."
+    if isinstance(value, bool) or value is None:
+        raise InputError(f"{field}: {value!r} is not a number" + tail)
+    try:
+        x = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{field}: {value!r} is not a number" + tail) from None
+    if not math.isfinite(x):
+        raise InputError(f"{field}: {_fmt(value)} is not a finite number" + tail)
+    if integer and x != int(x):
+        raise InputError(f"{field}: {_fmt(value)} is not an integer" + tail)
+    ok = ((gt is None or x > gt) and (ge is None or x >= ge)
+          and (lt is None or x < lt) and (le is None or x <= le))
+    if not ok:
+        raise InputError(f"{field}: {_fmt(value)} is out of range" + tail)
+    return int(x) if integer else x
+
+
+def _concrete_array(x):
+    """``x`` as a NumPy float array, or None when it is a JAX tracer."""
+    try:
+        return np.asarray(x, dtype=float)
+    except Exception:  # tracers (inside jit / grad / vmap) have no concrete value
+        return None
+
+
+def check_array(value, field: str, *, gt=None, ge=None, fix: str | None = None) -> None:
+    """Every element finite (and > gt / >= ge); tracers pass through."""
+    a = _concrete_array(value)
+    if a is None:
+        return
+    flat = a.ravel()
+    for i, x in enumerate(flat):
+        name = field if a.ndim == 0 else f"{field}[{i}]" if a.ndim == 1 else (
+            f"{field}[{', '.join(map(str, np.unravel_index(i, a.shape)))}]")
+        check_number(x, name, gt=gt, ge=ge, fix=fix)
+
+
+# -------------------------------------------------------------------------- the PSF
+
+
+def check_psf_inputs(*, wavelength=None, z_image=None, pixel_pitch=None, defocus=None,
+                     rotation=None, where: str = "difstar.psf") -> None:
+    """Refuse non-finite, zero or negative PSF scalars with the field and the fix.
+
+    Concrete values only: a JAX tracer (inside jit/grad) passes through untouched (use
+    :func:`refuse_nonfinite_traced` there). ``None`` skips a field.
+    """
+    spec = (
+        ("wavelength", wavelength, dict(gt=0.0, le=1e-3), "metres, e.g. 530e-9 for 530 nm"),
+        ("z_image", z_image, dict(gt=0.0), "exit pupil to sensor in metres, e.g. 51.5e-3"),
+        ("pixel_pitch", pixel_pitch, dict(gt=0.0, le=1e-2), "metres, e.g. 3.9e-6"),
+        ("defocus", defocus, {}, "metres; 0 for in focus"),
+        ("rotation", rotation, {}, "radians"),
+    )
+    for name, v, lim, fix in spec:
+        if v is None:
+            continue
+        a = _concrete_array(v)
+        if a is None:
+            continue
+        for x in a.ravel():
+            check_number(x, f"{where}: {name}", fix=fix, **lim)
+    z, dz = _concrete_array(z_image), _concrete_array(defocus)
+    if z is not None and dz is not None and z_image is not None and defocus is not None:
+        if np.any(z - dz <= 0):
+            raise InputError(
+                f"{where}: defocus = {_fmt(np.max(dz))} m puts the in-focus image at or "
+                f"behind the exit pupil (z_image = {_fmt(np.min(z))} m); give "
+                f"|defocus| < z_image."
+            )
+
+
+def refuse_nonfinite_traced(x, name: str):
+    """``x``, with a runtime error (``eqx.error_if``) if any element is NaN or infinite.
+
+    For values traced inside jit; concrete values are checked at once."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    return eqx.error_if(
+        x, ~jnp.all(jnp.isfinite(x)),
+        f"{name} is NaN or infinite; give a finite value (check the inputs upstream).",
+    )
+
+
+def check_pupil(pupil, field: str = "pupil") -> None:
+    """Every concrete array inside a pupil finite (e.g. a RegularPolygon's rotation)."""
+    import equinox as eqx
+    import jax
+
+    leaves = jax.tree_util.tree_leaves_with_path(eqx.filter(pupil, eqx.is_array))
+    for path, leaf in leaves:
+        a = _concrete_array(leaf)
+        if a is not None and not np.all(np.isfinite(a)):
+            name = field + "".join(str(k) for k in path)
+            raise InputError(f"{name} contains NaN or infinity; give finite values.")
+
+
+# ------------------------------------------------------------------------- polygons
+
+
+def _segments_cross_matrix(v: np.ndarray) -> tuple[int, int] | None:
+    """First pair (i, j) of non-adjacent edges that cross or touch, or None."""
+    w = np.roll(v, -1, axis=0)
+    n = len(v)
+
+    def orient(a, b, c):  # broadcast: a, b (n,1,2)-like; c (1,n,2)
+        return np.sign((b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1])
+                       - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0]))
+
+    p1, p2 = v[:, None, :], w[:, None, :]
+    p3, p4 = v[None, :, :], w[None, :, :]
+    cross = ((orient(p1, p2, p3) * orient(p1, p2, p4) < 0)
+             & (orient(p3, p4, p1) * orient(p3, p4, p2) < 0))
+    i, j = np.indices((n, n))
+    adjacent = (np.abs(i - j) <= 1) | (np.abs(i - j) == n - 1)
+    hits = np.argwhere(cross & ~adjacent & (j > i))
+    if len(hits):
+        return int(hits[0][0]), int(hits[0][1])
+    return None
+
+
+def check_polygon_vertices(vertices, field: str = "vertices") -> np.ndarray:
+    """An (n, 2) array of a simple, counter-clockwise polygon, or :class:`InputError`
+    naming the field: a figure-8 is reported as self-intersecting (before its
+    orientation, which is meaningless for it)."""
+    try:
+        v = np.asarray(vertices, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{field}: must be a list of [x, y] pairs in metres.") from None
+    if v.ndim != 2 or v.shape[1] != 2 or not 3 <= v.shape[0] <= MAX_VERTICES:
+        raise InputError(
+            f"{field}: must be 3 to {MAX_VERTICES} [x, y] pairs in metres; got shape "
+            f"{list(v.shape)}."
+        )
+    if not np.all(np.isfinite(v)):
+        i = int(np.argwhere(~np.isfinite(v))[0][0])
+        raise InputError(f"{field}/{i}: NaN or infinity; give finite coordinates in metres.")
+    hit = _segments_cross_matrix(v)
+    if hit is not None:
+        raise InputError(
+            f"{field}: the polygon is self-intersecting (edges {hit[0]} and {hit[1]} "
+            "cross, e.g. a figure-8); give the vertices of a simple polygon in order "
+            "around its outline."
+        )
+    w = np.roll(v, -1, axis=0)
+    area = 0.5 * float(np.sum(v[:, 0] * w[:, 1] - w[:, 0] * v[:, 1]))
+    if area == 0 or not math.isfinite(area):
+        raise InputError(f"{field}: the polygon has zero area; give distinct vertices.")
+    if area < 0:
+        raise InputError(
+            f"{field}: the vertices go clockwise; give them counter-clockwise (reverse "
+            "the list)."
+        )
+    return v
+
+
+# --------------------------------------------------------------- camera and scene
+
+
+def _inner_radius(pupil) -> float | None:
+    """Largest r with the disc of radius r about the axis inside the pupil (concrete
+    values; None when unknown)."""
+    from ._pupil import Circle, Polygon, RegularPolygon
+
+    try:
+        if isinstance(pupil, RegularPolygon):
+            return float(pupil.circumradius) * math.cos(math.pi / pupil.n)
+        if isinstance(pupil, Circle):
+            c = np.asarray(pupil.centre, float)
+            return float(pupil.radius) - float(np.hypot(*c))
+        if isinstance(pupil, Polygon):
+            v = np.asarray(pupil.vertices, float)
+            w = np.roll(v, -1, axis=0)
+            d = w - v
+            t = np.clip(-np.sum(v * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-300),
+                        0.0, 1.0)
+            return float(np.min(np.hypot(*(v + t[:, None] * d).T)))
+        return float(pupil.max_radius())
+    except Exception:  # traced
+        return None
+
+
+def check_obstruction(pupil, field: str = "camera.lens.pupil") -> None:
+    """An Obstructed pupil's central obstruction must leave light through the pupil."""
+    from ._pupil import Obstructed
+
+    if not isinstance(pupil, Obstructed) or pupil.obstruction is None:
+        return
+    r_in = _inner_radius(pupil.outer)
+    ob = _concrete_array(pupil.obstruction.radius)
+    if r_in is None or ob is None:
+        return
+    if not float(ob) < r_in:
+        raise InputError(
+            f"{field}.obstruction radius {_fmt(ob)} m covers the whole pupil (its inner "
+            f"radius is {_fmt(r_in)} m); give an obstruction radius < {_fmt(r_in)} m."
+        )
+
+
+def check_camera_scene(camera, scene, *, where: str = "") -> None:
+    """Physical consistency of concrete camera and scene values, naming the field:
+    finite values, positive where they must be, the object beyond what the lens can
+    focus, an obstruction inside the pupil. Traced values pass through."""
+    from ._geometry import check_geometry
+
+    p = f"{where}: " if where else ""
+    lens, sen = camera.lens, camera.sensor
+    check_pupil(lens.pupil, f"{p}camera.lens.pupil")
+    check_obstruction(lens.pupil, f"{p}camera.lens.pupil")
+    check_array(lens.focal_length, f"{p}camera.lens.focal_length", gt=0, fix="metres")
+    fd = _concrete_array(lens.focus_distance)
+    if fd is not None and not (fd.ndim == 0 and float(fd) == math.inf):
+        check_array(fd, f"{p}camera.lens.focus_distance", gt=0, fix="metres, or inf")
+    check_array(lens.principal_separation, f"{p}camera.lens.principal_separation",
+                fix="metres")
+    check_array(lens.pupil_magnification, f"{p}camera.lens.pupil_magnification", gt=0)
+    if lens.defocus is not None:
+        check_array(lens.defocus, f"{p}camera.lens.defocus", fix="metres, or None")
+    check_number(sen.pixel_pitch, f"{p}camera.sensor.pixel_pitch", gt=0, le=1e-2,
+                 fix="metres, e.g. 3.9e-6")
+    check_array(sen.wavelengths, f"{p}camera.sensor.wavelengths", gt=0,
+                fix="metres, e.g. 530e-9")
+    check_array(sen.phi0, f"{p}camera.sensor.phi0", gt=0)
+    check_array(sen.response.toe, f"{p}camera.sensor.response.toe", ge=0)
+    check_array(sen.response.knee, f"{p}camera.sensor.response.knee", gt=0)
+    check_array(sen.white_balance, f"{p}camera.sensor.white_balance", gt=0)
+    check_array(sen.colour_matrix, f"{p}camera.sensor.colour_matrix")
+    check_array(scene.object_distance, f"{p}scene.object_distance", gt=0, fix="metres")
+    check_array(scene.exposure_time, f"{p}scene.exposure_time", gt=0, fix="seconds")
+    check_array(scene.background, f"{p}scene.background", ge=0)
+    for i, s in enumerate(scene.sources):
+        check_array(s.radius, f"{p}scene.sources[{i}].radius", gt=0, fix="metres")
+        check_array(s.position, f"{p}scene.sources[{i}].position", fix="metres")
+        check_array(s.radiance, f"{p}scene.sources[{i}].radiance", ge=0)
+    f, ro, rf, zp = (_concrete_array(x) for x in (lens.focal_length, scene.object_distance,
+                                                  lens.focus_distance,
+                                                  lens.principal_separation))
+    if any(x is None or x.ndim for x in (f, ro, rf, zp)):
+        return
+    try:
+        check_geometry(focal_length=float(f), object_distance=float(ro),
+                       focus_distance=float(rf), principal_separation=float(zp))
+    except ValueError as exc:
+        raise InputError(f"{p}{exc}") from None
+
+
+# ------------------------------------------------------------------ sizes, memory
+
+
+def check_crop(crop, field: str = "--crop") -> tuple[int, int]:
+    """(H, W) even integers >= :data:`MIN_CROP`."""
+    try:
+        h, w = (v for v in crop)
+    except (TypeError, ValueError):
+        raise InputError(f"{field}: give two sizes H W in pixels.") from None
+    out = []
+    for v in (h, w):
+        n = check_number(v, field, ge=MIN_CROP, integer=True, unit="pixels",
+                         fix=f"even; the smallest crop is {MIN_CROP} {MIN_CROP}")
+        if n % 2:
+            raise InputError(
+                f"{field}: {n} is odd; give even sizes (whole Bayer quads), e.g. {n + 1}."
+            )
+        out.append(n)
+    return out[0], out[1]
+
+
+def memory_budget() -> int:
+    """Bytes a computation may use: ``DIFSTAR_MEMORY_LIMIT`` (bytes) if set, else the
+    accelerator's memory limit where JAX reports one, else the machine's memory."""
+    env = os.environ.get("DIFSTAR_MEMORY_LIMIT")
+    if env:
+        return int(float(env))
+    try:
+        import jax
+
+        stats = jax.devices()[0].memory_stats() or {}
+        if stats.get("bytes_limit"):
+            return int(stats["bytes_limit"])
+    except Exception:
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 16 * 2**30
+
+
+def fmt_bytes(b: float) -> str:
+    for unit, s in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
+        if b >= s:
+            return f"{b / s:.3g} {unit}"
+    return f"{b:.0f} bytes"
+
+
+__all__ = [
+    "InputError", "MAX_BLADES", "MAX_JSON_DEPTH", "MAX_SPIDERS", "MAX_VERTICES",
+    "MIN_CROP", "check_array", "check_camera_scene", "check_crop", "check_finite_doc",
+    "check_number", "check_obstruction", "check_polygon_vertices", "check_psf_inputs",
+    "check_pupil", "fmt_bytes", "json_depth", "loads_strict", "memory_budget",
+    "refuse_nonfinite_traced",
+]
