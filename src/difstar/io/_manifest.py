@@ -75,6 +75,7 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
     for i, c in enumerate(doc["configurations"]):
         if c["name"] in configs:
             raise SceneError(f"{src}: field configurations/{i}/name: duplicate name {c['name']!r}")
+        _check_geometry(cam, c, f"{src}: field configurations/{i}")
         configs[c["name"]] = dict(c)
 
     default_roi = tuple(doc.get("roi_size", (128, 128)))
@@ -121,6 +122,7 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
             raise SceneError(f"{where}: {ref!r} is not one of the capture names {sorted(names)}")
         shape = param_shape(name, n)
         start = _shaped(p["start"], shape, where + "/start")
+        _check_sign(kind, start, where + "/start")
         free = bool(p.get("free", False))
         lo = hi = None
         if "bounds" in p:
@@ -136,6 +138,11 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
         params[name] = {"shape": shape, "free": free, "start": start, "lo": lo, "hi": hi,
                         "perturb_scale": scale}
 
+    if not any(p["free"] for p in params.values()):
+        raise SceneError(
+            f"{src}: field parameters: no parameter is free, so there is nothing to fit; "
+            'set "free": true (with "bounds": [lo, hi]) on at least one parameter.'
+        )
     syn = doc.get("synthetic")
     if syn is not None:
         truth = {}
@@ -145,12 +152,19 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
                     f"{src}: field synthetic/truth/{name}: not a parameter of this manifest"
                 )
             truth[name] = _shaped(v, params[name]["shape"], f"{src}: field synthetic/truth/{name}")
+            _check_sign(name.partition("/")[0], truth[name], f"{src}: field synthetic/truth/{name}")
         missing = [k for k in params if k not in truth]
         if missing:
             raise SceneError(f"{src}: field synthetic/truth: missing values for {missing}")
         syn = {"black_level": 600.0, "white_level": 16383, "seed": 0, "padding": 2.0,
                **syn, "truth": truth}
         fh, fw = syn["frame_size"]
+        for cp in caps:
+            if cp.roi_size[0] > fh or cp.roi_size[1] > fw:
+                raise SceneError(
+                    f"{src}: field captures/{cp.name}/roi_size: {list(cp.roi_size)} does not "
+                    f"fit the synthetic frame {fh} × {fw}; give a roi_size <= frame_size."
+                )
         for cp, c in zip(caps, doc["captures"]):
             r, col = cp.source_position
             if not (0 <= r < fh and 0 <= col < fw):
@@ -165,6 +179,39 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
                 "reweight": 1, **doc.get("solver", {})},
         synthetic=syn,
     )
+
+
+#: parameters that must be > 0 (or >= 0) to mean anything
+_POSITIVE = ("circumradius", "source_radius", "phi0", "knee", "exposure_scale")
+_NONNEGATIVE = ("toe", "background")
+
+
+def _check_sign(kind: str, a: np.ndarray, where: str) -> None:
+    if kind in _POSITIVE and not np.all(a > 0):
+        raise SceneError(f"{where}: {a.tolist()} must be > 0 ({kind} is positive).")
+    if kind in _NONNEGATIVE and not np.all(a >= 0):
+        raise SceneError(f"{where}: {a.tolist()} must be >= 0.")
+
+
+def _check_geometry(cam: dict, c: dict, where: str) -> None:
+    """The same geometry ``difstar predict`` accepts: object and focus beyond what the
+    lens can focus."""
+    from .._geometry import check_geometry
+
+    for key in ("object_distance", "focus_distance"):
+        try:
+            check_geometry(focal_length=float(cam["focal_length"]),
+                           object_distance=float(c[key]) if key == "object_distance" else None,
+                           focus_distance=float(c[key]) if key == "focus_distance" else None,
+                           principal_separation=float(cam["principal_separation"]))
+        except ValueError:
+            f = float(cam["focal_length"])
+            near = 4 * f + float(cam["principal_separation"])
+            raise SceneError(
+                f"{where}/{key}: {c[key]} m is too close: a lens of focal length {f} m "
+                f"can only focus beyond {near:.4g} m from the sensor; give {key} > "
+                f"{near:.4g}."
+            ) from None
 
 
 def _shaped(v, shape: tuple[int, ...], where: str) -> np.ndarray:

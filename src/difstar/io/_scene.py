@@ -13,10 +13,18 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import (
+    InputError,
+    check_camera_scene,
+    check_finite_doc,
+    check_polygon_vertices,
+    loads_strict,
+)
+
 SCHEMA_DIR_ENV = "DIFSTAR_SCHEMAS"
 
 
-class SceneError(ValueError):
+class SceneError(InputError):
     """A scene file is missing, unreadable or invalid; the message names the field."""
 
 
@@ -35,30 +43,105 @@ def load_schema(name: str) -> dict:
     return json.loads(schema_path(name).read_text())
 
 
-def validate(doc: Any, schema_name: str, *, source: str = "<document>") -> None:
-    """Validate ``doc`` against a schema; raise SceneError naming the field on failure."""
+def _short(x, limit: int = 60) -> str:
+    r = repr(x)
+    return r if len(r) <= limit else r[: limit - 5] + " ...)"
+
+
+def _pick(e):
+    """For oneOf/anyOf errors, the error of the branch the document meant (the one not
+    failing on its discriminating ``type``/``const``), so that the message names the
+    innermost field instead of dumping the whole object."""
     import jsonschema
 
+    while e.context:
+        branches: dict = {}
+        for c in e.context:
+            branches.setdefault(c.relative_schema_path[0], []).append(c)
+
+        def off(errs):
+            return any(c.validator == "const" or (c.validator == "type"
+                                                  and not list(c.relative_path))
+                       for c in errs)
+
+        cand = [errs for errs in branches.values() if not off(errs)]
+        if not cand:
+            return e
+        errs = min(cand, key=len)
+        e = jsonschema.exceptions.best_match(errs)
+    return e
+
+
+def _message(e) -> str:
+    v, inst = e.validator, e.instance
+    if v == "exclusiveMinimum":
+        return f"{_short(inst)} must be > {e.validator_value}"
+    if v == "minimum":
+        return f"{_short(inst)} must be >= {e.validator_value}"
+    if v == "exclusiveMaximum":
+        return f"{_short(inst)} must be < {e.validator_value}"
+    if v == "maximum":
+        return f"{_short(inst)} must be <= {e.validator_value}"
+    if v == "multipleOf":
+        return f"{_short(inst)} must be a multiple of {e.validator_value}"
+    if v == "type":
+        return f"{_short(inst)} is not of type {e.validator_value!r}"
+    if v in ("minItems", "maxItems"):
+        n = len(inst) if isinstance(inst, (list, dict)) else "?"
+        return (f"has {n} items; needs at {'least' if v == 'minItems' else 'most'} "
+                f"{e.validator_value}")
+    if v in ("oneOf", "anyOf"):
+        return f"{_short(inst)} is not one of the allowed forms (see the schema)"
+    msg = e.message
+    return msg if len(msg) <= 300 else msg[:295] + " ..."
+
+
+def validate(doc: Any, schema_name: str, *, source: str = "<document>") -> None:
+    """Validate ``doc`` against a schema; raise SceneError naming the field on failure.
+    NaN, Infinity and overflowing numbers (which JSON Schema lets through) are refused
+    first, naming their field."""
+    import jsonschema
+
+    try:
+        check_finite_doc(doc, source=source)
+    except InputError as exc:
+        raise SceneError(str(exc)) from None
     schema = load_schema(schema_name)
     validator = jsonschema.Draft202012Validator(schema)
-    errors = sorted(validator.iter_errors(doc), key=lambda e: list(e.absolute_path))
+    try:
+        errors = sorted(validator.iter_errors(doc), key=lambda e: list(e.absolute_path))
+    except RecursionError:
+        raise SceneError(f"{source}: the document is nested too deeply.") from None
     if errors:
-        e = jsonschema.exceptions.best_match(errors)
+        e = _pick(jsonschema.exceptions.best_match(errors))
         where = "/".join(str(p) for p in e.absolute_path) or "(top level)"
-        raise SceneError(f"{source}: field {where}: {e.message}")
+        raise SceneError(f"{source}: field {where}: {_message(e)}")
 
 
 def read_json(path: str | Path, *, what: str = "file") -> dict:
+    """Read a JSON file strictly (no NaN/Infinity, bounded nesting), with errors naming
+    the file."""
     p = Path(path)
+    if p.is_dir():
+        raise SceneError(f"{what} {p} is a folder, not a file; give the JSON file itself.")
     if not p.is_file():
+        if p.exists():
+            raise SceneError(f"{what} {p} is not a regular file; give a JSON file.")
         raise SceneError(f"{what} {p} does not exist (check the path).")
     try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise SceneError(f"{p}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from exc
+        text = p.read_text()
+    except UnicodeDecodeError:
+        raise SceneError(f"{what} {p} is not a text (UTF-8 JSON) file.") from None
+    except OSError as exc:
+        raise SceneError(f"{what} {p} cannot be read ({exc.strerror}).") from None
+    try:
+        return loads_strict(text, source=str(p))
+    except InputError as exc:
+        raise SceneError(str(exc)) from None
 
 
-def _pupil_from_dict(d: dict, *, focal_length: float, m_p: float, where: str):
+def _pupil_from_dict(d: dict, *, focal_length: float, m_p: float, where: str,
+                     source: str = "<scene>"):
     import difstar
 
     t = d["type"]
@@ -67,21 +150,35 @@ def _pupil_from_dict(d: dict, *, focal_length: float, m_p: float, where: str):
         return difstar.RegularPolygon(int(d["n"]), r, float(d.get("rotation", 0.0)))
     if t == "polygon":
         try:
-            return difstar.Polygon(np.asarray(d["vertices"], float))
+            v = check_polygon_vertices(d["vertices"], f"{where}/vertices")
+            return difstar.Polygon(v)
         except ValueError as exc:
-            raise SceneError(f"{where}/vertices: {exc}") from exc
+            raise SceneError(f"{source}: field {exc}" if isinstance(exc, InputError)
+                             else f"{source}: field {where}/vertices: {exc}") from None
     if t == "circle":
         return difstar.Circle(_radius(d, "radius", focal_length, m_p, where))
     if t == "obstructed":
-        outer = _pupil_from_dict(d["outer"], focal_length=focal_length, m_p=m_p, where=where + "/outer")
-        obs = difstar.Circle(d["obstruction_radius"]) if "obstruction_radius" in d else None
+        outer = _pupil_from_dict(d["outer"], focal_length=focal_length, m_p=m_p,
+                                 where=where + "/outer", source=source)
+        obs = None
+        if "obstruction_radius" in d:
+            from .._validate import _inner_radius
+
+            r_in = _inner_radius(outer)
+            if r_in is not None and not d["obstruction_radius"] < r_in:
+                raise SceneError(
+                    f"{source}: field {where}/obstruction_radius: {d['obstruction_radius']} m "
+                    f"covers the whole pupil (its inner radius is {r_in:.6g} m); give an "
+                    f"obstruction_radius < {r_in:.6g} m."
+                )
+            obs = difstar.Circle(d["obstruction_radius"])
         sp = None
         if "spiders" in d:
             s = d["spiders"]
             sp = difstar.Spiders(int(s["n"]), s["width"], s.get("rotation", 0.0),
                                  s.get("length", 2 * float(outer.max_radius())))
         return difstar.Obstructed(outer, obs, sp)
-    raise SceneError(f"{where}/type: unknown pupil type {t!r}")
+    raise SceneError(f"{source}: field {where}/type: unknown pupil type {t!r}")
 
 
 def _radius(d, key, focal_length, m_p, where):
@@ -103,7 +200,8 @@ def scene_from_dict(doc: dict, *, source: str = "<scene>"):
     ld = cam["lens"]
     f = float(ld["focal_length"])
     m_p = float(ld.get("pupil_magnification", 1.0))
-    pupil = _pupil_from_dict(ld["pupil"], focal_length=f, m_p=m_p, where="camera/lens/pupil")
+    pupil = _pupil_from_dict(ld["pupil"], focal_length=f, m_p=m_p, where="camera/lens/pupil",
+                             source=source)
     fd = ld["focus_distance"]
     try:
         lens = difstar.Lens(
@@ -136,11 +234,13 @@ def scene_from_dict(doc: dict, *, source: str = "<scene>"):
             exposure_time=float(sc["exposure_time"]),
             background=sc.get("background", (0.0, 0.0, 0.0)),
         )
+        camera = difstar.Camera(lens, sensor)
+        check_camera_scene(camera, scene)  # physics: the object beyond the focus limit...
     except (ValueError, TypeError) as exc:
         if isinstance(exc, SceneError):
             raise
-        raise SceneError(f"{source}: {exc}") from exc
-    return difstar.Camera(lens, sensor), scene, dict(doc.get("grid", {}))
+        raise SceneError(f"{source}: {exc}") from None
+    return camera, scene, dict(doc.get("grid", {}))
 
 
 def load_scene(path: str | Path):
