@@ -13,6 +13,11 @@ from ._pupil import (
     Polygon as Polygon,
     RegularPolygon as RegularPolygon,
     Spiders as Spiders,
+    Struts as Struts,
+    Transformed as Transformed,
+    Union as Union,
+    hex_segment_centres as hex_segment_centres,
+    hex_segments as hex_segments,
 )
 from ._pupil_curved import (
     CurvedIris as CurvedIris,

@@ -250,6 +250,11 @@ class CurvedIris(AbstractPupil):
     def tiled_coverage(self, x: Array, y: Array, cell) -> Array:
         return tiled_outline_coverage(*self._edges(), x, y, cell)
 
+    def outline_edges(self):
+        """The arc pieces' edges (v0, v1): a closed counter-clockwise outline (see
+        :meth:`AbstractPupil.outline_edges`)."""
+        return self._edges()
+
     def _edges(self):
         p = self.arc_points()
         return p[:, :-1, :].reshape(-1, 2), p[:, 1:, :].reshape(-1, 2)
