@@ -44,16 +44,46 @@ _MIN_PADDING = 0.05
 
 
 def fast_length(n: int) -> int:
-    """Smallest m ≥ n whose prime factors are all in {2, 3, 5, 7} (fast FFT sizes)."""
-    m = max(int(n), 1)
-    while True:
-        k = m
-        for p in _FAST_RADICES:
-            while k % p == 0:
-                k //= p
-        if k == 1:
-            return m
-        m += 1
+    """Smallest m ≥ n whose prime factors are all in {2, 3, 5, 7} (fast FFT sizes).
+
+    Enumerates the 7-smooth candidates (O(log³ n) steps, never a scan), so it returns at
+    once for any size; sizes beyond 2⁶² raise ValueError."""
+    n = max(int(n), 1)
+    if n > 2**62:
+        raise ValueError(f"fast_length: n = {n} is beyond any grid that could be allocated.")
+    best = 1 << (n - 1).bit_length()  # the power of two ≥ n
+    p7 = 1
+    while p7 < best:
+        p5 = p7
+        while p5 < best:
+            p3 = p5
+            while p3 < best:
+                m = p3
+                if m < n:  # the smallest m · 2^k ≥ n
+                    m <<= (-(-n // m) - 1).bit_length()
+                best = min(best, m)
+                p3 *= 3
+            p5 *= 5
+        p7 *= 7
+    return best
+
+
+#: complex (side × side) arrays certainly held at once: a lower bound on the memory a
+#: grid needs (the pruned paths hold little more), used to refuse, before anything is
+#: allocated, a grid that cannot fit
+_WORKING_ARRAYS = 1
+
+
+def _grid_bytes(side: int) -> int:
+    """Lower bound on the memory of a (side × side) sample grid: one complex array."""
+    import jax
+
+    item = 16 if jax.config.jax_enable_x64 else 8
+    return _WORKING_ARRAYS * item * int(side) ** 2
+
+
+def _max_side(budget: int) -> int:
+    return int(math.isqrt(max(budget // _grid_bytes(1), 0)))
 
 
 def required_oversample(camera: Camera, scene: Scene) -> int:
@@ -119,6 +149,23 @@ def choose_grid(
     (then ``n``, ``padding`` and ``accuracy`` do not apply) — and "fft" otherwise.
     """
     from ._pupil import Polygon, RegularPolygon
+    from ._validate import InputError, check_camera_scene, check_crop, fmt_bytes, memory_budget
+
+    crop = check_crop(crop, "choose_grid: crop")
+    check_camera_scene(camera, scene, where="choose_grid")
+    budget = memory_budget()
+    if oversample is not None:
+        oversample = int(oversample)
+        if oversample < 1:
+            raise InputError(f"choose_grid: oversample = {oversample}; give an integer >= 1.")
+
+    def refuse(side: int, q: int, fixes: str):
+        raise SamplingError(
+            f"difstar.choose_grid: the grid ({side // q} px a side, oversample {q}: "
+            f"{side} samples a side) needs at least {fmt_bytes(_grid_bytes(side))} of memory, "
+            f"more than the {fmt_bytes(budget)} this machine has (DIFSTAR_MEMORY_LIMIT "
+            f"overrides). {fixes}"
+        )
 
     in_focus = not needs_defocus(camera, scene)
     exact_ok = in_focus and isinstance(camera.lens.pupil, (Polygon, RegularPolygon))
@@ -131,8 +178,15 @@ def choose_grid(
                 "RegularPolygon pupil; use method='fft'."
             )
         ext = scene_extent(camera, scene)
-        window = source_window_for(ext["object_radius_px"])
         q = required_oversample(camera, scene) if oversample is None else int(oversample)
+        side = (max(crop) + 2 * math.ceil(ext["object_radius_px"]) + 1) * q
+        if _grid_bytes(side) > budget:
+            fit = _max_side(budget) // q - 2 * math.ceil(ext["object_radius_px"]) - 1
+            fit -= fit % 2
+            refuse(side, q, f"Use a crop of at most {fit} × {fit} pixels." if fit >= 8 else
+                   "The sources' image alone is too large: make them smaller or nearer the "
+                   "axis.")
+        window = source_window_for(ext["object_radius_px"])
         grid = Grid(n=max(crop), oversample=q, crop=tuple(int(c) for c in crop),
                     use_defocus=False, raw_only=raw_only, scaling=scaling, method="exact",
                     source_window=window)
@@ -152,6 +206,29 @@ def choose_grid(
     q = need_q if oversample is None else int(oversample)
     span = max(crop) + 2 * ext["object_radius_px"] + ext["blur_diameter_px"]
     overridden = n is not None or oversample is not None
+    want = n if n is not None else span + padding * max(crop)
+    if not math.isfinite(want) or _grid_bytes(math.ceil(want) * q) > budget:
+        n_fit = _max_side(budget) // q
+        extra = span - max(crop)
+        fixes = []
+        if n is not None:
+            fixes.append(f"Use n <= {n_fit}.")
+        pad_fit = (n_fit - span) / max(crop)
+        if pad_fit >= _MIN_PADDING and n is None:
+            if accuracy is not None:
+                fixes.append(f"The tightest accuracy that fits is about "
+                             f"{_CAL_A * (1.0 / pad_fit) ** _CAL_ALPHA:.2g} (accuracy >= "
+                             f"that, or padding <= {pad_fit:.3g}).")
+            else:
+                fixes.append(f"Use padding <= {pad_fit:.3g}.")
+        crop_fit = int((n_fit - extra) / (1 + (padding if n is None else 0)))
+        crop_fit -= crop_fit % 2
+        if crop_fit >= 8:
+            fixes.append(f"A crop of at most {crop_fit} × {crop_fit} pixels fits.")
+        else:
+            fixes.append(f"The sources and their blur alone span {extra:.4g} px: make the "
+                         "sources smaller or nearer the axis, or the defocus smaller.")
+        refuse(math.ceil(want) * q if math.isfinite(want) else 2**62, q, " ".join(fixes))
     if n is None:
         n = fast_length(math.ceil(span + padding * max(crop)))
         n += n % 2

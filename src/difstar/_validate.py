@@ -157,7 +157,7 @@ def _fmt(x) -> str:
 
 
 def check_number(value, field: str, *, gt=None, ge=None, lt=None, le=None,
-                 integer: bool = False, unit: str = "", fix: str | None = None) -> float:
+                 integer: bool = False, unit: str = "", fix: str | None = None):
     """A finite number within the given limits, or :class:`InputError` naming ``field``
     and what would work. Returns it as a float (an int when ``integer``)."""
     limits = []
@@ -460,7 +460,7 @@ def memory_budget() -> int:
         return 16 * 2**30
 
 
-def fmt_bytes(b: float) -> str:
+def fmt_bytes(b) -> str:
     for unit, s in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
         if b >= s:
             return f"{b / s:.3g} {unit}"
