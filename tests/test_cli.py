@@ -24,7 +24,11 @@ def test_predict_writes_everything(tmp_path):
     out = tmp_path / "out"
     assert main(["predict", str(scene), "--out", str(out)]) == 0
     assert sorted(p.name for p in out.iterdir()) == [
+        ".difstar-output", "derived.json", "psf_log.png", "raw.tiff", "scene.json", "srgb.png"]
+    marker = json.loads((out / ".difstar-output").read_text())
+    assert marker["difstar"] == "output" and marker["files"] == [
         "derived.json", "psf_log.png", "raw.tiff", "scene.json", "srgb.png"]
+    assert not [p for p in tmp_path.iterdir() if "difstar-" in p.name]  # no temporaries
     d = json.loads((out / "derived.json").read_text())
     assert d["geometry"]["defocus_m"] == pytest.approx(4.78e-3, abs=2e-5)  # paper: 4.78 mm
     assert d["grid"]["crop"] == [64, 64]

@@ -467,10 +467,43 @@ def fmt_bytes(b) -> str:
     return f"{b:.0f} bytes"
 
 
+# ------------------------------------------------------------- command-line types
+
+
+def _arg_type(name: str, **limits):
+    """An argparse ``type``: a finite number within ``limits`` (message names the
+    limit; argparse adds the option's name)."""
+    integer = limits.pop("integer", False)
+
+    def parse(text: str):
+        import argparse
+
+        try:
+            v = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{text!r} is not {'an integer' if integer else 'a number'}") from None
+        try:
+            return check_number(v, "value", integer=integer, **limits)
+        except InputError as exc:
+            raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
+
+    parse.__name__ = name
+    return parse
+
+
+positive_int = _arg_type("positive_int", integer=True, ge=1)
+nonnegative_int = _arg_type("nonnegative_int", integer=True, ge=0)
+finite_float = _arg_type("finite_float")
+positive_float = _arg_type("positive_float", gt=0)
+nonnegative_float = _arg_type("nonnegative_float", ge=0)
+
+
 __all__ = [
     "InputError", "MAX_BLADES", "MAX_JSON_DEPTH", "MAX_SPIDERS", "MAX_VERTICES",
     "MIN_CROP", "check_array", "check_camera_scene", "check_crop", "check_finite_doc",
     "check_number", "check_obstruction", "check_polygon_vertices", "check_psf_inputs",
-    "check_pupil", "fmt_bytes", "json_depth", "loads_strict", "memory_budget",
-    "refuse_nonfinite_traced",
+    "check_pupil", "finite_float", "fmt_bytes", "json_depth", "loads_strict",
+    "memory_budget", "nonnegative_float", "nonnegative_int", "positive_float",
+    "positive_int", "refuse_nonfinite_traced",
 ]

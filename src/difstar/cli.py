@@ -27,22 +27,33 @@ def example_document(name: str, *, crop=None) -> dict:
     from difstar._examples import PAPER
     from difstar.io._scene import scene_to_dict
 
+    from difstar._validate import InputError, check_crop
+
     if name not in EXAMPLES:
-        raise SystemExit(f"difstar: unknown example {name!r}; choose one of {', '.join(EXAMPLES)}.")
+        raise InputError(f"unknown example {name!r}; choose one of {', '.join(EXAMPLES)}.")
+    if crop is not None:
+        crop = check_crop(crop, "--crop")
     config = name.split("-", 1)[1]
     camera, scene = difstar.paper_camera(config)
     crop = list(PAPER["crop"]) if crop is None else list(crop)
     return scene_to_dict(camera, scene, {"crop": crop}, name=name)
 
 
-def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None) -> dict:
-    """Predict one scene document and write the outputs to ``out`` (whole or not at all)."""
+def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None,
+                inputs=()) -> dict:
+    """Predict one scene document and write the outputs to ``out`` (whole or not at all).
+
+    Everything the user gave is checked before anything is computed: the scene (finite,
+    in range, physically consistent), the grid (it must fit in memory) and the output
+    folder (difstar's own or new, never an input); the computation runs inside the
+    output's temporary folder, which any failure removes."""
     import equinox as eqx
     import jax
     import numpy as np
 
     import difstar
     from difstar._sampling import choose_grid
+    from difstar._validate import check_crop
     from difstar.io._output import (
         check_output_free,
         output_dir,
@@ -52,10 +63,10 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
     )
     from difstar.io._scene import scene_from_dict
 
-    check_output_free(out, overwrite=overwrite)
+    check_output_free(out, overwrite=overwrite, inputs=inputs)
     camera, scene, gopt = scene_from_dict(doc, source=source)
     if crop is not None:
-        gopt["crop"] = list(crop)
+        gopt["crop"] = list(check_crop(crop, "--crop"))
     crop_t = tuple(gopt.get("crop", (512, 512)))
     grid = choose_grid(
         camera, scene, crop=crop_t, padding=gopt.get("padding"), n=gopt.get("n"),
@@ -70,47 +81,54 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
     else:
         _log(f"difstar: FFT grid n = {grid.n}, oversample = {grid.oversample}, crop = "
              f"{grid.crop}, defocus phase {'on' if grid.use_defocus else 'off (Δz negligible)'}")
-    run = eqx.filter_jit(difstar.simulate)
-    t0 = time.perf_counter()
-    _log("difstar: compiling the chain ...")
-    compiled = run.lower(camera, scene, grid).compile()
-    t_compile = time.perf_counter() - t0
-    _log(f"difstar: compiled in {t_compile:.1f} s; running ...")
-    t0 = time.perf_counter()
-    pred = jax.block_until_ready(compiled(camera, scene, grid))
-    t_run = time.perf_counter() - t0
-    _log(f"difstar: ran in {t_run:.2f} s")
-    g = pred.geometry
-    derived = {
-        "source": source,
-        "geometry": {
-            "lens_extension_m": float(g.extension),
-            "s_prime_m": float(g.s_prime),
-            "object_to_front_principal_plane_m": float(g.s_object),
-            "image_distance_from_rear_principal_plane_m": float(g.s_image),
-            "exit_pupil_to_sensor_m": float(g.z_exit_pupil),
-            "exit_pupil_to_in_focus_image_m": float(g.z_in_focus),
-            "defocus_m": float(g.defocus),
-            "magnification": float(g.magnification),
-            "working_f_number": float(g.working_f_number),
-        },
-        "grid": {
-            "method": grid.method, "source_window": grid.source_window,
-            "n": grid.n, "oversample": grid.oversample, "crop": list(grid.crop),
-            "pixel_pitch_m": camera.sensor.pixel_pitch,
-            "grid_pitch_m": camera.sensor.pixel_pitch / grid.oversample,
-            "field_m": grid.n * camera.sensor.pixel_pitch,
-            "defocus_phase": grid.use_defocus, "scaling": grid.scaling,
-        },
-        "timing_s": {"compile": t_compile, "run": t_run},
-        "summary": {
-            "saturated_fraction": float(np.mean(np.asarray(pred.cfa) > 0.999)),
-            "psf_peak": [float(x) for x in np.asarray(pred.psf).max(axis=(1, 2))],
-        },
-        "jax": {"version": jax.__version__, "backend": jax.default_backend(),
-                "x64": bool(jax.config.jax_enable_x64)},
-    }
-    with output_dir(out, overwrite=overwrite) as tmp:
+    with output_dir(out, overwrite=overwrite, inputs=inputs, command="predict") as tmp:
+        run = eqx.filter_jit(difstar.simulate)
+        t0 = time.perf_counter()
+        _log("difstar: compiling the chain ...")
+        compiled = run.lower(camera, scene, grid).compile()
+        t_compile = time.perf_counter() - t0
+        _log(f"difstar: compiled in {t_compile:.1f} s; running ...")
+        t0 = time.perf_counter()
+        pred = jax.block_until_ready(compiled(camera, scene, grid))
+        t_run = time.perf_counter() - t0
+        _log(f"difstar: ran in {t_run:.2f} s")
+        for name in ("psf", "cfa", "srgb"):
+            a = getattr(pred, name)
+            if a is not None and not np.all(np.isfinite(np.asarray(a))):
+                raise InternalError(
+                    f"the predicted {name} contains NaN or infinity although the scene "
+                    "passed validation; nothing was written (please report this scene)."
+                )
+        g = pred.geometry
+        derived = {
+            "source": source,
+            "geometry": {
+                "lens_extension_m": float(g.extension),
+                "s_prime_m": float(g.s_prime),
+                "object_to_front_principal_plane_m": float(g.s_object),
+                "image_distance_from_rear_principal_plane_m": float(g.s_image),
+                "exit_pupil_to_sensor_m": float(g.z_exit_pupil),
+                "exit_pupil_to_in_focus_image_m": float(g.z_in_focus),
+                "defocus_m": float(g.defocus),
+                "magnification": float(g.magnification),
+                "working_f_number": float(g.working_f_number),
+            },
+            "grid": {
+                "method": grid.method, "source_window": grid.source_window,
+                "n": grid.n, "oversample": grid.oversample, "crop": list(grid.crop),
+                "pixel_pitch_m": camera.sensor.pixel_pitch,
+                "grid_pitch_m": camera.sensor.pixel_pitch / grid.oversample,
+                "field_m": grid.n * camera.sensor.pixel_pitch,
+                "defocus_phase": grid.use_defocus, "scaling": grid.scaling,
+            },
+            "timing_s": {"compile": t_compile, "run": t_run},
+            "summary": {
+                "saturated_fraction": float(np.mean(np.asarray(pred.cfa) > 0.999)),
+                "psf_peak": [float(x) for x in np.asarray(pred.psf).max(axis=(1, 2))],
+            },
+            "jax": {"version": jax.__version__, "backend": jax.default_backend(),
+                    "x64": bool(jax.config.jax_enable_x64)},
+        }
         if pred.srgb is not None:
             write_png_srgb(tmp / "srgb.png", pred.srgb)
         write_tiff_raw(tmp / "raw.tiff", pred.cfa, pattern=camera.sensor.pattern)
@@ -119,6 +137,10 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
         write_json(tmp / "derived.json", derived)
     _log(f"difstar: wrote {out}/ (srgb.png, raw.tiff, psf_log.png, scene.json, derived.json)")
     return derived
+
+
+class InternalError(RuntimeError):
+    """A failure that is difstar's, not the user's (exit status 1)."""
 
 
 def write_psf_png(path, psf) -> None:
@@ -134,53 +156,71 @@ def write_psf_png(path, psf) -> None:
 
 
 def _cmd_predict(a) -> int:
+    from difstar._validate import InputError, check_crop
+    from difstar.io._output import check_output_free
     from difstar.io._scene import read_json
 
     if (a.scene is None) == (a.example is None):
-        raise SystemExit("difstar predict: give a scene file or --example NAME (one of them).")
+        raise InputError("difstar predict: give a scene file or --example NAME (one of them).")
+    crop = None if a.crop is None else check_crop(a.crop, "--crop")
+    inputs = [a.scene] if a.scene else []
+    out = Path(a.out)
     if a.example:
         doc = example_document(a.example)
         source = f"example:{a.example}"
     else:
         doc = read_json(a.scene, what="scene file")
         source = str(a.scene)
-    run_predict(doc, source=source, out=Path(a.out), overwrite=a.overwrite, crop=a.crop)
+    check_output_free(out, overwrite=a.overwrite, inputs=inputs)
+    run_predict(doc, source=source, out=out, overwrite=a.overwrite, crop=crop, inputs=inputs)
     return 0
 
 
 def _cmd_example(a) -> int:
+    from difstar.io._output import write_file_atomic
+
     doc = example_document(a.name, crop=a.crop)
     text = json.dumps(doc, indent=2) + "\n"
     if a.out:
-        p = Path(a.out)
-        if p.exists() and not a.overwrite:
-            raise SystemExit(f"difstar example: {p} exists; pass --overwrite to replace it.")
-        tmp = p.with_name(f".{p.name}.tmp")
-        tmp.write_text(text)
-        tmp.replace(p)
+        write_file_atomic(a.out, text, overwrite=a.overwrite)
     else:
         sys.stdout.write(text)
     return 0
 
 
+class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Help that gives every default, descriptions as written."""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="difstar", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--x64", action="store_true", help="compute in float64 (default float32)")
+    ap = argparse.ArgumentParser(
+        prog="difstar", description=__doc__.split("\n\n")[0], formatter_class=_Formatter,
+        epilog="Exit status: 0 success; 2 a user error (one line naming the field and the "
+        "fix); 1 an internal failure; 130/143 interrupted (nothing is left behind).")
+    ap.add_argument("--x64", action="store_true", help="compute in float64 (else float32)")
     sub = ap.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("predict", help="predict RAW mosaic + sRGB image for a scene")
+    p = sub.add_parser("predict", help="predict RAW mosaic + sRGB image for a scene",
+                       formatter_class=_Formatter)
     p.add_argument("scene", nargs="?", help="scene JSON (data_schemas/scene.schema.json)")
     p.add_argument("--example", choices=EXAMPLES, help="use a built-in scene instead of a file")
-    p.add_argument("--out", required=True, help="output directory (written whole or not at all)")
-    p.add_argument("--crop", nargs=2, type=int, metavar=("H", "W"), help="output size in pixels")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    p.add_argument("--out", required=True,
+                   help="output folder, created by difstar (written whole or not at all)")
+    p.add_argument("--crop", nargs=2, type=int, metavar=("H", "W"),
+                   help="output size in pixels, even, at least 8 (default: the scene's "
+                   "grid.crop, else 512 512)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out if it is a folder difstar made (its .difstar-output "
+                   "marker lists every file in it); never a folder with other files, never "
+                   "an input")
     p.set_defaults(func=_cmd_predict)
 
-    p = sub.add_parser("example", help="print a built-in scene as JSON")
+    p = sub.add_parser("example", help="print a built-in scene as JSON", formatter_class=_Formatter)
     p.add_argument("name", choices=EXAMPLES)
-    p.add_argument("--crop", nargs=2, type=int, metavar=("H", "W"))
-    p.add_argument("--out", help="write to this file instead of stdout")
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--crop", nargs=2, type=int, metavar=("H", "W"),
+                   help="grid.crop of the scene, even, at least 8 (default: 1250 1250)")
+    p.add_argument("--out", help="write to this file (its folder must exist) instead of stdout")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(func=_cmd_example)
 
     for name, module in (("bench", "difstar._bench_cli"), ("synth", "difstar._fit_cli"),
@@ -190,24 +230,49 @@ def build_parser() -> argparse.ArgumentParser:
         except ImportError:
             continue
         mod.register(sub, name)
+    for p in sub.choices.values():
+        p.formatter_class = _Formatter
     return ap
 
 
 def main(argv=None) -> int:
+    """Run the command line; returns the exit status (argparse's own errors exit 2)."""
     ap = build_parser()
     a = ap.parse_args(argv)
     if a.x64:
         import jax
 
         jax.config.update("jax_enable_x64", True)
-    from difstar.io._output import OutputExistsError
-    from difstar.io._scene import SceneError
+    from difstar.io._output import Terminated
 
     try:
         return int(a.func(a) or 0)
-    except (SceneError, OutputExistsError, ValueError) as exc:
-        _log(f"difstar: error: {exc}")
+    except (ValueError, OSError) as exc:  # the user's input, files or machine
+        _log(f"difstar: error: {' '.join(str(exc).split())}")
         return 2
+    except (KeyboardInterrupt, Terminated) as exc:
+        _log("difstar: interrupted; nothing was written.")
+        return exc.code if isinstance(exc, Terminated) else 130
+    except RecursionError:
+        _log("difstar: error: the input is nested too deeply.")
+        return 2
+    except MemoryError:
+        _log("difstar: error: out of memory; use a smaller --crop or grid.")
+        return 2
+    except Exception as exc:  # noqa: BLE001 - everything else is ours
+        if "RESOURCE_EXHAUSTED" in str(exc):
+            _log("difstar: error: out of memory on the device; use a smaller --crop or grid.")
+            return 2
+        return _internal(exc)
+
+
+def _internal(exc: BaseException) -> int:
+    import traceback
+
+    traceback.print_exception(exc, file=sys.stderr)
+    _log(f"difstar: internal error ({type(exc).__name__}): {exc}. This is a difstar bug: "
+         "please report it with the command and its input.")
+    return 1
 
 
 if __name__ == "__main__":
