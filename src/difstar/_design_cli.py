@@ -263,19 +263,22 @@ def plot_study(result: dict, path_prefix: Path) -> list[str]:
 
 
 def _cmd_design(a) -> int:
-    from difstar.io._output import output_dir, write_json
+    from difstar.io._output import check_output_free, output_dir, write_json
 
-    if a.blades < 3:
-        raise ValueError(f"--blades must be >= 3; got {a.blades}.")
+    check_output_free(Path(a.out), overwrite=a.overwrite)
     t0 = time.perf_counter()
-    result = iris_study(
-        blades=a.blades, f_number=a.f_number, quick=a.quick, steps=a.steps,
-        max_curvature=a.max_curvature, vertex_bound=a.vertex_bound,
-        bokeh_weight=a.bokeh_weight,
-    )
-    wall = time.perf_counter() - t0
-    md = table_markdown(result["rows"])
-    with output_dir(Path(a.out), overwrite=a.overwrite) as tmp:
+    with output_dir(Path(a.out), overwrite=a.overwrite, command="design") as tmp:
+        result = iris_study(
+            blades=a.blades, f_number=a.f_number, quick=a.quick, steps=a.steps,
+            max_curvature=a.max_curvature, vertex_bound=a.vertex_bound,
+            bokeh_weight=a.bokeh_weight,
+        )
+        wall = time.perf_counter() - t0
+        bad = [k for k, r in result["rows"].items()
+               if not all(math.isfinite(v) for v in r.values())]
+        if bad:
+            raise RuntimeError(f"design rows {bad} hold NaN or infinity; nothing was written")
+        md = table_markdown(result["rows"])
         (tmp / "table.md").write_text(md)
         doc = {k: result[k] for k in ("config", "rows", "params", "histories")}
         doc["timing_s"] = {"optimise": result["optimise_s"], "total": wall}
@@ -288,20 +291,31 @@ def _cmd_design(a) -> int:
 
 
 def register(subparsers, name: str) -> None:
+    from difstar._validate import MAX_BLADES, _arg_type, nonnegative_float, positive_float, \
+        positive_int
+
     p = subparsers.add_parser(
         name, help="aperture design study: spikes vs bokeh for curved iris blades",
         description=__doc__.split("\n\n")[1],
     )
-    p.add_argument("--out", required=True, help="output directory (written whole or not at all)")
-    p.add_argument("--blades", type=int, default=9, help="blade count (default 9)")
-    p.add_argument("--f-number", type=float, default=8.0, help="f-number of the open area")
+    p.add_argument("--out", required=True,
+                   help="output folder, created by difstar (written whole or not at all)")
+    p.add_argument("--blades", type=_arg_type("blades", integer=True, ge=3, le=MAX_BLADES),
+                   default=9, help=f"blade count, 3 to {MAX_BLADES}")
+    p.add_argument("--f-number", type=positive_float, default=8.0,
+                   help="f-number of the open area, > 0")
     p.add_argument("--quick", action="store_true", help="small grids and 12 steps (CI)")
-    p.add_argument("--steps", type=int, help="optimiser steps per design (default 60)")
-    p.add_argument("--max-curvature", type=float, default=0.6,
-                   help="blade curvature bound, relative to the circumradius (1 = circle)")
-    p.add_argument("--vertex-bound", type=float, default=0.015,
-                   help="bound on each vertex's relative radial and angular (rad) deviation")
-    p.add_argument("--bokeh-weight", type=float, default=0.0,
-                   help="weight of the bokeh CV in the objective (0: spikes only)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    p.add_argument("--steps", type=positive_int,
+                   help="optimiser steps per design, >= 1 (default: 60, or 12 with --quick)")
+    p.add_argument("--max-curvature", type=_arg_type("curvature", gt=0, le=1), default=0.6,
+                   help="blade curvature bound, relative to the circumradius, in (0, 1] "
+                   "(1 = circle)")
+    p.add_argument("--vertex-bound", type=_arg_type("bound", ge=0, lt=0.5), default=0.015,
+                   help="bound on each vertex's relative radial and angular (rad) deviation, "
+                   "in [0, 0.5)")
+    p.add_argument("--bokeh-weight", type=nonnegative_float, default=0.0,
+                   help="weight of the bokeh CV in the objective, >= 0 (0: spikes only)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace --out if it is a folder difstar made (never one holding "
+                   "other files)")
     p.set_defaults(func=_cmd_design)

@@ -109,7 +109,27 @@ def load_captures(man):
     out = {}
     pattern = None
     for c in man.captures:
+        if c.path.is_dir():
+            raise SceneError(f"{man.path}: field captures/{c.name}/file: {c.path} is a folder, "
+                             "not a RAW file.")
+        if not c.path.is_file():
+            raise SceneError(f"{man.path}: field captures/{c.name}/file: {c.path} does not "
+                             "exist (paths are relative to the manifest's folder).")
         rc = read_raw(c.path)
+        fh, fw = rc.shape
+        if man.synthetic is not None and tuple(man.synthetic["frame_size"]) != (fh, fw):
+            raise SceneError(
+                f"{man.path}: field captures/{c.name}/file: {c.path} is {fh} × {fw} pixels, "
+                f"not the synthetic.frame_size {man.synthetic['frame_size'][0]} × "
+                f"{man.synthetic['frame_size'][1]}; re-run `difstar synth` or fix frame_size."
+            )
+        r, col = c.source_position
+        if not (0 <= r < fh and 0 <= col < fw):
+            raise SceneError(
+                f"{man.path}: field captures/{c.name}/source_position: {[r, col]} is outside "
+                f"the {fh} × {fw} frame of {c.path.name}; give the source's (row, col) in "
+                "that frame."
+            )
         if pattern is None:
             pattern = rc.pattern
         elif rc.pattern != pattern:
@@ -119,6 +139,10 @@ def load_captures(man):
         if t is None:
             raise SceneError(f"{man.path}: field captures/{c.name}/exposure_time: {c.path} has "
                              "no EXIF ExposureTime; give exposure_time in the manifest")
+        if not (math.isfinite(float(t)) and float(t) > 0):
+            raise SceneError(f"{man.path}: field captures/{c.name}/exposure_time: {t} (from "
+                             f"{c.path.name}) is not a finite time > 0; give exposure_time "
+                             "in the manifest")
         try:
             r0, c0 = roi_origin(c.source_position, c.roi_size, rc.shape)
         except ValueError as exc:
@@ -546,7 +570,9 @@ def study_table(study: dict) -> str:
 
 def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
     """Simulate the manifest's captures from ``synthetic.truth`` on full frames and
-    write them as DNGs into ``out_dir`` (whole or not at all)."""
+    write them as DNGs into ``out_dir`` (whole or not at all). ``out_dir`` is checked
+    before the computation (output policy of :mod:`difstar.io._output`; it may replace a
+    folder holding exactly these captures), and never replaces the manifest."""
     from difstar._fit import Fitter, to_unconstrained
     from difstar.io._dng import synthesize_capture, write_dng
     from difstar.io._output import output_dir
@@ -554,26 +580,32 @@ def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
     syn = man.synthetic
     fh, fw = syn["frame_size"]
     pattern = man.camera.get("pattern", "RGGB")
-    model = build_model(
-        man, crops={k: (fh, fw) for k in man.configurations},
-        base_offsets={c.name: (c.source_position[0] - fh // 2, c.source_position[1] - fw // 2)
-                      for c in man.captures},
-        exposure_times={c.name: c.exposure_time for c in man.captures}, pattern=pattern,
-        padding=syn["padding"], values=syn["truth"],
-    )
-    model = model.with_values(syn["truth"])
-    _log("difstar synth: grids " + ", ".join(f"{c.name}: n = {c.grid.n}" for c in model.configs))
-    pred = Fitter(model).predict(to_unconstrained(model))
-    rng = np.random.default_rng(int(syn["seed"]))
-    black, white = float(syn["black_level"]), int(syn["white_level"])
-    r = float(syn["truth"]["circumradius"])
-    f_number = man.camera["focal_length"] * man.camera["pupil_magnification"] / (2 * r)
+    names = [c.path.name for c in man.captures]
     written = []
-    with output_dir(out_dir, overwrite=overwrite) as tmp:
+    with output_dir(out_dir, overwrite=overwrite, inputs=[man.path], will_write=names,
+                    command="synth") as tmp:
+        model = build_model(
+            man, crops={k: (fh, fw) for k in man.configurations},
+            base_offsets={c.name: (c.source_position[0] - fh // 2,
+                                   c.source_position[1] - fw // 2) for c in man.captures},
+            exposure_times={c.name: c.exposure_time for c in man.captures}, pattern=pattern,
+            padding=syn["padding"], values=syn["truth"],
+        )
+        model = model.with_values(syn["truth"])
+        _log("difstar synth: grids " + ", ".join(f"{c.name}: n = {c.grid.n}"
+                                                 for c in model.configs))
+        pred = Fitter(model).predict(to_unconstrained(model))
+        rng = np.random.default_rng(int(syn["seed"]))
+        black, white = float(syn["black_level"]), int(syn["white_level"])
+        r = float(syn["truth"]["circumradius"])
+        f_number = man.camera["focal_length"] * man.camera["pupil_magnification"] / (2 * r)
         for cfg in model.configs:
             for i, c in enumerate(model.captures_of(cfg.name)):
                 entry = next(e for e in man.captures if e.name == c.name)
-                z = np.clip(np.asarray(pred[cfg.name][i]), 0.0, None)
+                z = np.asarray(pred[cfg.name][i])
+                if not np.all(np.isfinite(z)):
+                    raise RuntimeError(f"synthesized capture {c.name} holds NaN or infinity")
+                z = np.clip(z, 0.0, None)
                 raw = synthesize_capture(
                     z, black_level=black, white_level=white,
                     gain_e_per_dn=man.noise["gain_e_per_dn"],
@@ -582,7 +614,7 @@ def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
                           white_level=white, exposure_time=c.exposure_time, f_number=f_number,
                           focal_length=man.camera["focal_length"],
                           camera_white_balance=man.camera["white_balance"])
-                written.append(out_dir / entry.path.name)
+                written.append(Path(out_dir) / entry.path.name)
                 _log(f"difstar synth: {entry.path.name}: t = {c.exposure_time:g} s, "
                      f"saturated {np.mean(raw >= white) * 100:.2f} %")
     return written
@@ -598,6 +630,7 @@ def _enable_x64():
 
 def _cmd_synth(a) -> int:
     from difstar.io._manifest import load_manifest
+    from difstar.io._output import check_output_free
     from difstar.io._scene import SceneError
 
     _enable_x64()
@@ -614,6 +647,8 @@ def _cmd_synth(a) -> int:
         raise SceneError(f"{man.path}: field captures: synthetic captures need exposure_time "
                          f"(missing for {missing_t})")
     out = Path(a.out) if a.out else folders.pop()
+    check_output_free(out, overwrite=a.overwrite, inputs=[man.path],
+                      will_write=[c.path.name for c in man.captures])
     synthesize(man, out, overwrite=a.overwrite)
     _log(f"difstar synth: wrote {len(man.captures)} DNG files to {out}/")
     return 0
@@ -621,18 +656,20 @@ def _cmd_synth(a) -> int:
 
 def _cmd_fit(a) -> int:
     from difstar.io._manifest import load_manifest
-    from difstar.io._output import output_dir, write_json
+    from difstar.io._output import check_output_free, output_dir, write_json
     from difstar.io._scene import SceneError
 
     _enable_x64()
     man = load_manifest(a.manifest)
     if a.max_steps is not None:
         man.solver["max_steps"] = a.max_steps
+    inputs = [man.path] + [c.path for c in man.captures]
     if a.recovery_study:
         if man.synthetic is None:
             raise SceneError(f"{man.path}: field synthetic: --recovery-study needs the truth")
         out = Path(a.out) if a.out else man.folder / "recovery"
-        with output_dir(out, overwrite=a.overwrite) as tmp:
+        check_output_free(out, overwrite=a.overwrite, inputs=inputs)
+        with output_dir(out, overwrite=a.overwrite, inputs=inputs, command="fit") as tmp:
             study = recovery_study(man, a.recovery_study, a.seed)
             table = study_table(study)
             write_json(tmp / "recovery.json", study)
@@ -640,8 +677,11 @@ def _cmd_fit(a) -> int:
         print(table)
         return 0 if study["n_pass"] >= math.ceil(0.9 * a.recovery_study) else 1
     out = Path(a.out) if a.out else man.folder / "result"
-    with output_dir(out, overwrite=a.overwrite) as tmp:
+    check_output_free(out, overwrite=a.overwrite, inputs=inputs)
+    with output_dir(out, overwrite=a.overwrite, inputs=inputs, command="fit") as tmp:
         result, model, caps, fitter, u = fit_manifest(man)
+        if not math.isfinite(result["convergence"].get("reduced_chi2", 0.0)):
+            raise RuntimeError("the fit's χ² is NaN or infinite; nothing was written")
         files = write_outputs(tmp, result, model, caps, fitter, u, man.noise)
     _print_summary(result)
     _log(f"difstar fit: wrote {out}/ ({', '.join(files[:4])}, ...)")
@@ -667,22 +707,32 @@ def _print_summary(result: dict) -> None:
 
 
 def register(subparsers, name: str) -> None:
+    from difstar._validate import nonnegative_int, positive_int
+
     if name == "synth":
         p = subparsers.add_parser("synth", help="write synthetic DNG captures for a fit manifest")
         p.add_argument("manifest", help="fit manifest JSON with a `synthetic` block")
         p.add_argument("--out", help="folder for the DNGs (default: the captures' folder)")
-        p.add_argument("--overwrite", action="store_true", help="replace an existing folder")
+        p.add_argument("--overwrite", action="store_true",
+                       help="replace the folder if difstar made it or it holds only the "
+                       "manifest's captures (never the manifest itself)")
         p.set_defaults(func=_cmd_synth)
     elif name == "fit":
         p = subparsers.add_parser("fit", help="fit optics, exposure and response to RAW captures")
         p.add_argument("manifest", help="fit manifest JSON (data_schemas/fit_manifest.schema.json)")
         p.add_argument("--out", help="output folder (default: <manifest folder>/result, or "
                                      "/recovery with --recovery-study)")
-        p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-        p.add_argument("--max-steps", type=int, help="solver steps per stage")
-        p.add_argument("--recovery-study", type=int, metavar="N", default=0,
-                       help="fit from N starts perturbed by up to 20 %% (needs `synthetic`)")
-        p.add_argument("--seed", type=int, default=0, help="seed of the recovery study")
+        p.add_argument("--overwrite", action="store_true",
+                       help="replace --out if it is a folder difstar made (never one holding "
+                       "other files or an input)")
+        p.add_argument("--max-steps", type=positive_int,
+                       help="solver steps per stage, >= 1 (default: the manifest's "
+                       "solver.max_steps, else 100)")
+        p.add_argument("--recovery-study", type=nonnegative_int, metavar="N", default=0,
+                       help="fit from N starts perturbed by up to 20 %% (needs `synthetic`; "
+                       "0: a single fit)")
+        p.add_argument("--seed", type=nonnegative_int, default=0,
+                       help="seed of the recovery study")
         p.set_defaults(func=_cmd_fit)
     else:
         raise ValueError(f"difstar._fit_cli.register: unknown command {name!r}")

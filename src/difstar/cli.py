@@ -189,7 +189,14 @@ def _cmd_example(a) -> int:
 
 
 class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """Help that gives every default, descriptions as written."""
+    """Help that gives every default (unless the text already says it, or the option is
+    a switch or has none), descriptions as written."""
+
+    def _get_help_string(self, action):
+        h = action.help or ""
+        if "default" in h or action.default is None or isinstance(action.default, bool):
+            return h
+        return super()._get_help_string(action)
 
 
 def build_parser() -> argparse.ArgumentParser:
