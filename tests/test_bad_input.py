@@ -1,0 +1,675 @@
+"""Bad input never loses data, never passes silently, never hangs (issue 16).
+
+Every case runs the command line in-process (``difstar.cli.main``) unless it needs a
+real process (signals) and asserts: exit status 2 (user error) with one line naming the
+field, no traceback, the input files unchanged (checksums), nothing written and no
+temporary folders left behind. Property-based tests (hypothesis) throw non-finite and
+out-of-range numbers into every numeric field of a scene and of a fit manifest.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from difstar.cli import example_document, main
+from difstar.io._scene import SceneError
+
+REPO = Path(__file__).resolve().parents[1]
+CAMPAIGN = REPO / "fit" / "synthetic-paper-camera"
+
+
+# ------------------------------------------------------------------------ helpers
+
+
+def snapshot(folder: Path) -> dict:
+    """{relative path: sha256} of every file (hidden ones too) and every folder."""
+    out = {}
+    for root, dirs, files in os.walk(folder):
+        for d in dirs:
+            out[str(Path(root, d).relative_to(folder)) + "/"] = "dir"
+        for f in files:
+            p = Path(root, f)
+            out[str(p.relative_to(folder))] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+def run(argv, capsys) -> tuple[int, str]:
+    """main(argv) in-process → (exit status, stderr)."""
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse
+        code = exc.code
+    err = capsys.readouterr().err
+    return code, err
+
+
+def refused(argv, capsys, folder: Path, *fields: str) -> str:
+    """Run; assert exit 2, every ``fields`` string in the message, no traceback, and
+    ``folder`` unchanged (inputs intact, nothing written, no temporaries)."""
+    before = snapshot(folder)
+    code, err = run(argv, capsys)
+    assert code == 2, (code, err)
+    assert "Traceback" not in err, err
+    for f in fields:
+        assert f in err, (f, err)
+    assert snapshot(folder) == before, "files changed or left behind"
+    return err
+
+
+def small_doc(config: str = "focused", crop=(16, 16)) -> dict:
+    doc = example_document(f"paper-{config}", crop=crop)
+    doc["scene"]["sources"][0]["radius"] = 0.2e-3
+    return doc
+
+
+def write_text(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def doc_with(path: tuple, value, doc=None) -> dict:
+    d = copy.deepcopy(small_doc() if doc is None else doc)
+    node = d
+    for k in path[:-1]:
+        node = node[k]
+    node[path[-1]] = value
+    return d
+
+
+@pytest.fixture
+def work(tmp_path, monkeypatch):
+    """A scratch folder that is also the current folder (relative outputs land here)."""
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+# ------------------------------------------------------------ silent NaN / garbage
+
+# (JSON path, the text that replaces its value, what the message must name)
+NONFINITE_SCENE = [
+    (("camera", "sensor", "phi0", 1), "NaN", "camera/sensor/phi0/1"),
+    (("scene", "exposure_time"), "NaN", "scene/exposure_time"),
+    (("scene", "sources", 0, "radiance", 0), "Infinity", "scene/sources/0/radiance/0"),
+    (("scene", "background", 2), "-Infinity", "scene/background/2"),
+    (("camera", "sensor", "colour_matrix", 1, 1), "NaN", "camera/sensor/colour_matrix/1/1"),
+    (("camera", "sensor", "white_balance", 0), "NaN", "camera/sensor/white_balance/0"),
+    (("camera", "sensor", "response", "knee", 2), "NaN", "camera/sensor/response/knee/2"),
+    (("camera", "sensor", "wavelengths", 0), "Infinity", "camera/sensor/wavelengths/0"),
+    (("camera", "sensor", "pixel_pitch"), "Infinity", "camera/sensor/pixel_pitch"),
+    (("camera", "lens", "focal_length"), "1e999", "camera/lens/focal_length"),
+    (("camera", "lens", "pupil", "rotation"), "NaN", "camera/lens/pupil/rotation"),
+    (("camera", "lens", "defocus"), "NaN", "camera/lens/defocus"),
+    (("scene", "object_distance"), "-Infinity", "scene/object_distance"),
+    (("grid", "accuracy"), "NaN", "grid/accuracy"),
+]
+
+
+@pytest.mark.parametrize("path,text,field", NONFINITE_SCENE)
+def test_nonfinite_scene_numbers_are_refused(work, capsys, path, text, field):
+    marker = "__BAD__"
+    doc = doc_with(path, marker)
+    scene = write_text(work / "s.json", json.dumps(doc).replace(f'"{marker}"', text))
+    err = refused(["predict", scene, "--out", work / "out"], capsys, work, field,
+                  "finite")
+    assert err.count("\n") == 1  # one line
+
+
+BAD_SCENE = [
+    # an obstruction larger than the pupil (was: an all-NaN PSF, psf_peak NaN)
+    ("obstruction", lambda d: d["camera"]["lens"].update(pupil={
+        "type": "obstructed", "outer": d["camera"]["lens"]["pupil"],
+        "obstruction_radius": 0.01}), ["camera/lens/pupil/obstruction_radius", "covers"]),
+    # the object inside what the lens can focus (4 f)
+    ("object inside focus", lambda d: d["scene"].update(object_distance=0.03),
+     ["object_distance", "too close"]),
+    ("focus inside focal length", lambda d: d["camera"]["lens"].update(focus_distance=0.02),
+     ["focus_distance", "too close"]),
+    # a figure-8 polygon: "self-intersecting", not "clockwise"
+    ("figure-8", lambda d: d["camera"]["lens"].update(pupil={
+        "type": "polygon", "vertices": [[0, 0], [1e-3, 1e-3], [1e-3, 0], [0, 1e-3]]}),
+     ["camera/lens/pupil/vertices", "self-intersecting"]),
+    ("clockwise", lambda d: d["camera"]["lens"].update(pupil={
+        "type": "polygon", "vertices": [[-1e-3, -1e-3], [-1e-3, 1e-3], [1e-3, 1e-3],
+                                        [1e-3, -1e-3]]}),
+     ["camera/lens/pupil/vertices", "counter-clockwise"]),
+    # a bad f-number: the field, not a dump of the whole pupil
+    ("f-number -1", lambda d: d["camera"]["lens"].update(pupil={
+        "type": "regular_polygon", "n": 7, "f_number": -1}),
+     ["camera/lens/pupil/f_number", "must be > 0"]),
+    ("f-number 0", lambda d: d["camera"]["lens"].update(pupil={
+        "type": "circle", "f_number": 0}), ["camera/lens/pupil/f_number"]),
+    ("focus -1", lambda d: d["camera"]["lens"].update(focus_distance=-1),
+     ["camera/lens/focus_distance", "must be > 0"]),
+    # 100000 blades compiled for minutes
+    ("100000 blades", lambda d: d["camera"]["lens"]["pupil"].update(n=100000),
+     ["camera/lens/pupil/n", "256"]),
+    ("crop 2 2", lambda d: d.update(grid={"crop": [2, 2]}), ["grid/crop/0", "8"]),
+    ("grid n 4", lambda d: d.update(grid={"n": 4}), ["grid/n"]),
+    ("wavelength in nm", lambda d: d["camera"]["sensor"].update(wavelengths=[600, 530, 450]),
+     ["camera/sensor/wavelengths/0"]),
+    ("huge integer", lambda d: d["scene"].update(exposure_time=10**30),
+     ["scene/exposure_time", "too large"]),
+    ("negative phi0", lambda d: d["camera"]["sensor"].update(phi0=[0.1, -0.1, 0.1]),
+     ["camera/sensor/phi0/1"]),
+]
+
+
+@pytest.mark.parametrize("name,edit,fields", BAD_SCENE, ids=[c[0] for c in BAD_SCENE])
+def test_inconsistent_scene_is_refused(work, capsys, name, edit, fields):
+    doc = small_doc()
+    edit(doc)
+    scene = write_text(work / "s.json", json.dumps(doc))
+    err = refused(["predict", scene, "--out", work / "out"], capsys, work, *fields)
+    assert len(err) < 400 and "{'" not in err  # no dump of a whole object
+
+
+# ------------------------------------------------------------------ hangs, memory
+
+
+def test_huge_accuracy_target_is_refused_at_once(work, capsys):
+    doc = small_doc("defocused", (64, 64))
+    doc["grid"] = {"crop": [64, 64], "accuracy": 1e-12}
+    scene = write_text(work / "s.json", json.dumps(doc))
+    t0 = time.perf_counter()
+    refused(["predict", scene, "--out", work / "out"], capsys, work, "accuracy", "memory")
+    assert time.perf_counter() - t0 < 30  # it hung in fast_length
+
+
+def test_huge_crop_is_refused_before_allocation(work, capsys):
+    scene = write_text(work / "s.json", json.dumps(small_doc()))
+    err = refused(["predict", scene, "--out", work / "out", "--crop", 100000, 100000],
+                  capsys, work, "memory", "crop of at most")
+    # the crop it names fits
+    fit = int(err.split("crop of at most ")[1].split(" ")[0])
+    assert 8 <= fit < 100000
+
+
+def test_source_far_outside_the_frame_is_refused(work, capsys):
+    doc = small_doc()
+    doc["scene"]["sources"][0]["position"] = [1e4, 0.0]
+    scene = write_text(work / "s.json", json.dumps(doc))
+    refused(["predict", scene, "--out", work / "out"], capsys, work, "memory")
+
+
+def test_crop_too_small_names_the_minimum(work, capsys):
+    scene = write_text(work / "s.json", json.dumps(small_doc()))
+    refused(["predict", scene, "--out", work / "out", "--crop", 2, 2], capsys, work,
+            "--crop", "smallest crop is 8 8")
+    refused(["predict", scene, "--out", work / "out", "--crop", 9, 16], capsys, work,
+            "--crop", "odd")
+    refused(["example", "paper-focused", "--crop", 0, 0], capsys, work, "--crop")
+
+
+def test_deeply_nested_json(work, capsys):
+    scene = write_text(work / "deep.json", "[" * 100000 + "]" * 100000)
+    refused(["predict", scene, "--out", work / "out"], capsys, work, "nested")
+    scene = write_text(work / "deep2.json", '{"a":' * 200 + "1" + "}" * 200)
+    refused(["predict", scene, "--out", work / "out"], capsys, work, "nested")
+    refused(["fit", scene], capsys, work, "nested")
+
+
+def test_unreadable_inputs(work, capsys):
+    (work / "adir").mkdir()
+    refused(["predict", work / "adir", "--out", work / "out"], capsys, work, "is a folder")
+    refused(["fit", work / "adir"], capsys, work, "is a folder")
+    refused(["predict", work / "none.json", "--out", work / "out"], capsys, work,
+            "does not exist")
+    write_text(work / "bin.json", "")
+    (work / "bin.json").write_bytes(b"\xff\xfe\x00garbage")
+    refused(["predict", work / "bin.json", "--out", work / "out"], capsys, work, "bin.json")
+    refused(["predict", "--out", work / "out"], capsys, work, "scene file or --example")
+
+
+# --------------------------------------------------------------------- data loss
+
+
+def test_overwrite_never_replaces_a_folder_with_other_files(work, capsys):
+    scene = write_text(work / "s.json", json.dumps(small_doc()))
+    own = work / "mine"
+    own.mkdir()
+    write_text(own / "notes.txt", "my notes")
+    write_text(own / "scene.json", "{}")
+    refused(["predict", scene, "--out", own, "--overwrite"], capsys, work, "not made by difstar")
+    # even a difstar folder (marker) into which the user put a file of their own
+    write_text(own / ".difstar-output", json.dumps({"difstar": "output",
+                                                    "files": ["scene.json"]}))
+    refused(["predict", scene, "--out", own, "--overwrite"], capsys, work, "notes.txt")
+    # without --overwrite, never
+    refused(["predict", scene, "--out", own], capsys, work, "--overwrite")
+
+
+def test_an_input_is_never_replaced(work, capsys):
+    scene = write_text(work / "s.json", json.dumps(small_doc()))
+    refused(["predict", scene, "--out", scene, "--overwrite"], capsys, work, "input")
+    # the input inside a folder difstar made
+    out = work / "out"
+    out.mkdir()
+    write_text(out / "scene.json", json.dumps(small_doc()))
+    write_text(out / ".difstar-output", json.dumps({"difstar": "output",
+                                                    "files": ["scene.json"]}))
+    refused(["predict", out / "scene.json", "--out", out, "--overwrite"], capsys, work, "input")
+    # a file is never replaced by a folder
+    other = write_text(work / "other.txt", "x")
+    refused(["predict", scene, "--out", other, "--overwrite"], capsys, work, "is a file")
+
+
+def test_out_of_reach_destinations(work, capsys):
+    scene = write_text(work / "s.json", json.dumps(small_doc()))
+    f = write_text(work / "afile", "x")
+    refused(["predict", scene, "--out", f / "sub"], capsys, work, "is a file")
+    refused(["predict", scene, "--out", "."], capsys, work, "current folder")
+    if Path("/proc/self").exists():
+        refused(["predict", scene, "--out", "/proc/difstar-test"], capsys, work,
+                "cannot write")
+    refused(["example", "paper-focused", "--out", "nodir/x.json"], capsys, work,
+            "does not exist")
+    (work / "d").mkdir()
+    refused(["example", "paper-focused", "--out", work / "d"], capsys, work, "is a folder")
+    ex = write_text(work / "ex.json", "{}")
+    refused(["example", "paper-focused", "--out", ex], capsys, work, "--overwrite")
+    refused(["design", "--out", f / "x", "--quick"], capsys, work, "is a file")
+
+
+def test_overwrite_replaces_only_what_difstar_made(work, capsys):
+    """A real run: writes the marker; --overwrite replaces that folder; stale temporary
+    folders of a dead run beside it are removed; the input is unchanged."""
+    scene = write_text(work / "s.json", json.dumps(small_doc()))
+    digest = hashlib.sha256(scene.read_bytes()).hexdigest()
+    out = work / "out"
+    stale = work / ".out.difstar-tmp-999999999-abcd"
+    stale.mkdir()
+    write_text(stale / ".difstar-output", json.dumps({"difstar": "output", "files": []}))
+    write_text(stale / "raw.tiff", "half written")
+    foreign = work / ".out.someone-elses-tmp"
+    foreign.mkdir()
+    code, err = run(["predict", scene, "--out", out], capsys)
+    assert code == 0, err
+    marker = json.loads((out / ".difstar-output").read_text())
+    assert set(marker["files"]) == {p.name for p in out.iterdir()} - {".difstar-output"}
+    assert not stale.exists() and foreign.exists()  # only difstar's own stale folder
+    code, err = run(["predict", scene, "--out", out, "--overwrite"], capsys)
+    assert code == 0, err
+    assert hashlib.sha256(scene.read_bytes()).hexdigest() == digest
+    assert sorted(p.name for p in work.iterdir()) == [".out.someone-elses-tmp", "out", "s.json"]
+
+
+# ------------------------------------------------------------------- fit / synth
+
+
+def base_manifest(folder: Path, **synthetic) -> dict:
+    doc = json.loads((CAMPAIGN / "manifest.json").read_text())
+    for c in doc["captures"]:
+        c["file"] = str(CAMPAIGN / c["file"])
+    doc["solver"] = {"max_steps": 1}
+    doc["synthetic"].update(synthetic)
+    return doc
+
+
+def test_fit_refuses_what_predict_refuses(work, capsys):
+    man = base_manifest(work)
+    m = copy.deepcopy(man)
+    m["configurations"][0]["object_distance"] = 0.03
+    p = write_text(work / "m.json", json.dumps(m))
+    refused(["fit", p], capsys, work, "configurations/0/object_distance", "too close")
+    m = copy.deepcopy(man)
+    for v in m["parameters"].values():
+        v.pop("free", None)
+        v.pop("bounds", None)
+    p = write_text(work / "m.json", json.dumps(m))
+    refused(["fit", p], capsys, work, "field parameters", "no parameter is free")
+    m = copy.deepcopy(man)
+    m["captures"][2]["exposure_time"] = "__NaN__"
+    p = write_text(work / "m.json", json.dumps(m).replace('"__NaN__"', "NaN"))
+    refused(["fit", p], capsys, work, "captures/2/exposure_time", "finite")
+    p = write_text(work / "m.json", json.dumps(man))
+    refused(["fit", p, "--max-steps", -5], capsys, work, "--max-steps")
+    refused(["fit", p, "--max-steps", 0], capsys, work, "--max-steps")
+    refused(["fit", p, "--recovery-study", -1], capsys, work, "--recovery-study")
+    refused(["fit", p, "--out", p], capsys, work, "is a file")
+    refused(["fit", p, "--out", work, "--overwrite"], capsys, work, "current folder")
+
+
+def test_fit_checks_the_captures(work, capsys):
+    # a capture of the wrong size (the DNGs are 192 × 192)
+    p = write_text(work / "m.json", json.dumps(base_manifest(work, frame_size=[256, 256])))
+    refused(["fit", p], capsys, work, "frame_size", "192 × 192")
+    # a source far outside the frame (was an int32 overflow)
+    man = base_manifest(work)
+    del man["synthetic"]
+    man["captures"][0]["source_position"] = [900000.0, -900000.0]
+    p = write_text(work / "m.json", json.dumps(man))
+    refused(["fit", p], capsys, work, "source_position", "outside")
+    # a capture that is a folder, one that is missing
+    man = base_manifest(work)
+    (work / "cap.dng").mkdir()
+    man["captures"][0]["file"] = "cap.dng"
+    p = write_text(work / "m.json", json.dumps(man))
+    refused(["fit", p], capsys, work, "captures/focused_t0p03906s/file", "folder")
+
+
+def test_synth_never_deletes_the_manifest(work, capsys):
+    """The manifest inside its captures folder (was: deleted with --overwrite)."""
+    man = base_manifest(work)
+    for c in man["captures"]:
+        c["file"] = Path(c["file"]).name  # captures beside the manifest
+    p = write_text(work / "manifest.json", json.dumps(man))
+    write_text(work / "notes.txt", "mine")
+    refused(["synth", p, "--overwrite"], capsys, work, "input")
+    (work / "caps").mkdir()
+    write_text(work / "caps" / "notes.txt", "mine")
+    refused(["synth", p, "--out", work / "caps", "--overwrite"], capsys, work, "notes.txt")
+
+
+def test_design_arguments(work, capsys):
+    for args, field in ((["--f-number", -1], "--f-number"), (["--f-number", 0], "--f-number"),
+                        (["--f-number", "nan"], "--f-number"), (["--steps", 0], "--steps"),
+                        (["--blades", 100000], "--blades"), (["--blades", 2], "--blades"),
+                        (["--max-curvature", "inf"], "--max-curvature")):
+        refused(["design", "--out", work / "o", *args], capsys, work, field)
+    refused(["bench", "--repeats", 0], capsys, work, "--repeats")
+    refused(["bench", "--accuracy", "nan"], capsys, work, "--accuracy")
+
+
+def test_help_gives_defaults(capsys):
+    for cmd in ("predict", "design", "fit", "bench"):
+        with pytest.raises(SystemExit) as e:
+            main([cmd, "--help"])
+        assert e.value.code == 0
+    out = capsys.readouterr().out
+    assert "(default: 8.0)" in out and "(default: 9)" in out and "default: 0" in out
+    assert "(default: 60, or 12 with --quick)" in out
+
+
+# ------------------------------------------------------------------- the Python API
+
+
+def test_python_api_validation():
+    import difstar
+    from difstar._sampling import choose_grid, fast_length
+    from difstar._validate import InputError
+
+    camera, scene = difstar.paper_camera("focused")
+    bad = difstar.Camera(camera.lens, difstar.Sensor(pixel_pitch=3.917e-6,
+                                                     phi0=(0.1, float("nan"), 0.1)))
+    with pytest.raises(InputError, match=r"camera\.sensor\.phi0\[1\]"):
+        choose_grid(bad, scene, crop=(16, 16))
+    obs = difstar.Obstructed(camera.lens.pupil, difstar.Circle(0.01), None)
+    lens = difstar.Lens(obs, focal_length=51.5e-3, focus_distance=1.0)
+    with pytest.raises(InputError, match="obstruction"):
+        choose_grid(difstar.Camera(lens, camera.sensor), scene, crop=(16, 16))
+    with pytest.raises(InputError, match="smallest crop is 8 8"):
+        choose_grid(camera, scene, crop=(2, 2))
+    with pytest.raises(ValueError, match="crop of at most"):
+        choose_grid(camera, scene, crop=(100000, 100000))
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match="accuracy"):
+        choose_grid(camera, scene, crop=(64, 64), accuracy=1e-12)
+    assert time.perf_counter() - t0 < 10
+    t0 = time.perf_counter()
+    assert fast_length(10**15 + 1) >= 10**15 + 1
+    assert time.perf_counter() - t0 < 1
+    far = difstar.Scene(object_distance=1.0, exposure_time=1.0,
+                        sources=(difstar.DiscSource(1e-3, (1e5, 0.0)),))
+    with pytest.raises(ValueError, match="memory"):
+        choose_grid(camera, far, crop=(16, 16))
+
+
+def test_psf_bad_inputs():
+    """difstar.psf refuses NaN / 0 / negative / infinite scalars naming the field (was: an
+    all-NaN array, ZeroDivisionError, or "Use oversample >= 0"). Needs difstar.psf to
+    call difstar._validate.check_psf_inputs (the PSF owner wires it)."""
+    import difstar
+
+    pupil = difstar.RegularPolygon(7, 51.5e-3 / 44, 0.0)
+    good = dict(wavelength=530e-9, z_image=51.5e-3, pixel_pitch=3.917e-6, shape=(32, 32))
+    for field in ("wavelength", "z_image", "pixel_pitch"):
+        for v in (float("nan"), 0.0, -1e-6, float("inf")):
+            with pytest.raises(ValueError, match=field) as e:
+                difstar.psf(pupil, **{**good, field: v})
+            assert "oversample >= 0" not in str(e.value)
+    with pytest.raises(ValueError, match="defocus"):
+        difstar.psf(pupil, **good, defocus=float("nan"))
+    with pytest.raises(ValueError, match="rotation|finite|NaN"):
+        difstar.psf(difstar.RegularPolygon(7, 51.5e-3 / 44, float("nan")), **good)
+
+
+def test_validators_pass_tracers_and_refuse_traced_nan():
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from difstar._validate import check_psf_inputs, refuse_nonfinite_traced
+
+    @jax.jit
+    def f(w):
+        check_psf_inputs(wavelength=w, z_image=0.05, pixel_pitch=4e-6)  # traced: passes
+        return refuse_nonfinite_traced(w, "wavelength") * 2
+
+    assert float(f(1.0)) == 2.0
+    with pytest.raises(eqx.EquinoxRuntimeError, match="wavelength is NaN or infinite"):
+        jax.block_until_ready(f(jnp.nan))
+
+
+# --------------------------------------------------------------- signals, killed runs
+
+
+def _start_predict(work: Path, out: Path) -> subprocess.Popen:
+    scene = write_text(work / "s.json", json.dumps(small_doc("defocused", (64, 64))))
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    return subprocess.Popen([sys.executable, "-m", "difstar.cli", "predict", str(scene),
+                             "--out", str(out)], cwd=work, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def _wait_for_tmp(work: Path, proc, timeout=120.0) -> Path:
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        tmps = [p for p in work.iterdir() if ".difstar-tmp-" in p.name]
+        if tmps:
+            return tmps[0]
+        if proc.poll() is not None:
+            raise AssertionError(proc.stderr.read().decode())
+        time.sleep(0.05)
+    proc.kill()
+    raise AssertionError("no temporary folder appeared")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_interrupted_run_leaves_nothing(work, sig):
+    out = work / "out"
+    proc = _start_predict(work, out)
+    _wait_for_tmp(work, proc)
+    proc.send_signal(sig)
+    try:
+        _, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+    assert proc.returncode in (128 + sig, 130, -sig), err.decode()
+    assert b"Traceback" not in err
+    assert sorted(p.name for p in work.iterdir()) == ["s.json"]
+
+
+def test_killed_run_is_cleaned_next_time(work, capsys):
+    out = work / "out"
+    proc = _start_predict(work, out)
+    tmp = _wait_for_tmp(work, proc)
+    proc.kill()
+    proc.wait()
+    assert tmp.exists()  # SIGKILL cannot be caught...
+    code, err = run(["example", "paper-focused", "--out", work / "ex.json"], capsys)
+    assert code == 0, err
+    assert not tmp.exists()  # ...but the next run beside it removes what it left
+    assert sorted(p.name for p in work.iterdir()) == ["ex.json", "s.json"]
+
+
+# ------------------------------------------------------------- property-based tests
+
+
+def numeric_leaves(doc, path=()):
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            yield from numeric_leaves(v, (*path, k))
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc):
+            yield from numeric_leaves(v, (*path, i))
+    elif isinstance(doc, (int, float)) and not isinstance(doc, bool):
+        yield path
+
+
+SCENE_DOC = small_doc()
+SCENE_DOC["scene"]["sources"][0]["position"] = [1e-4, -1e-4]
+SCENE_DOC["grid"]["padding"] = 1.0
+SCENE_LEAVES = list(numeric_leaves(SCENE_DOC))
+SCENE_POSITIVE = [p for p in SCENE_LEAVES if p[:3] != ("camera", "sensor", "colour_matrix")
+                  and p[-1] not in ("rotation", "principal_separation")
+                  and "position" not in p and p[0] != "grid"
+                  and not any(k in p for k in ("toe", "background", "radiance"))]
+SCENE_NONNEG = [p for p in SCENE_LEAVES if any(k in p for k in ("toe", "background",
+                                                                    "radiance"))]
+NONFINITE = st.sampled_from([math.nan, math.inf, -math.inf])
+PROP = settings(max_examples=40, deadline=None,
+                suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+def _path(p) -> str:
+    return "/".join(map(str, p))
+
+
+def _scene_error(doc) -> str:
+    from difstar.io._scene import scene_from_dict
+
+    with pytest.raises(SceneError) as e:
+        scene_from_dict(doc, source="s.json")
+    return str(e.value)
+
+
+@PROP
+@given(path=st.sampled_from(SCENE_LEAVES), value=NONFINITE, via_json=st.booleans())
+def test_scene_nonfinite_anywhere_is_refused(tmp_path, path, value, via_json):
+    doc = doc_with(path, value, SCENE_DOC)
+    if via_json:  # Python's json writes and reads NaN/Infinity: the loader must not
+        from difstar.io._scene import load_scene
+
+        p = write_text(tmp_path / "s.json", json.dumps(doc))
+        with pytest.raises(SceneError) as e:
+            load_scene(p)
+        msg = str(e.value)
+    else:
+        msg = _scene_error(doc)
+    assert f"field {_path(path)}:" in msg and "finite" in msg
+
+
+@PROP
+@given(path=st.sampled_from(SCENE_POSITIVE),
+       value=st.floats(max_value=0.0, allow_nan=False, allow_infinity=False))
+def test_scene_nonpositive_is_refused(path, value):
+    msg = _scene_error(doc_with(path, value, SCENE_DOC))
+    assert _path(path) in msg
+
+
+@PROP
+@given(path=st.sampled_from(SCENE_NONNEG),
+       value=st.floats(max_value=-1e-300, allow_nan=False, allow_infinity=False))
+def test_scene_negative_is_refused(path, value):
+    msg = _scene_error(doc_with(path, value, SCENE_DOC))
+    assert _path(path) in msg
+
+
+JUNK = st.one_of(st.none(), st.booleans(), st.integers(), st.text(max_size=4),
+                 st.floats(allow_nan=True, allow_infinity=True),
+                 st.lists(st.floats(-1e3, 1e3), max_size=4),
+                 st.dictionaries(st.text(max_size=3), st.integers(), max_size=2))
+
+
+@PROP
+@given(path=st.sampled_from(SCENE_LEAVES), value=JUNK)
+def test_scene_junk_never_escapes_as_another_error(path, value):
+    from difstar.io._scene import scene_from_dict
+
+    try:
+        scene_from_dict(doc_with(path, value, SCENE_DOC), source="s.json")
+    except SceneError as exc:
+        assert "s.json" in str(exc)
+
+
+MANIFEST = json.loads((CAMPAIGN / "manifest.json").read_text())
+MANIFEST_LEAVES = list(numeric_leaves(MANIFEST))
+MANIFEST_POSITIVE = [
+    ("camera", "focal_length"), ("camera", "pixel_pitch"), ("camera", "wavelengths", 1),
+    ("camera", "white_balance", 0), ("camera", "pupil_magnification"),
+    ("noise", "gain_e_per_dn"), ("configurations", 0, "focus_distance"),
+    ("configurations", 1, "object_distance"), ("captures", 3, "exposure_time"),
+    ("parameters", "circumradius", "start"), ("parameters", "source_radius", "start"),
+    ("synthetic", "truth", "circumradius"),
+]
+
+
+def _manifest_error(doc) -> str:
+    from difstar.io._manifest import manifest_from_dict
+
+    with pytest.raises(SceneError) as e:
+        manifest_from_dict(doc, path=CAMPAIGN / "manifest.json")
+    return str(e.value)
+
+
+@PROP
+@given(path=st.sampled_from(MANIFEST_LEAVES), value=NONFINITE)
+def test_manifest_nonfinite_anywhere_is_refused(path, value):
+    msg = _manifest_error(doc_with(path, value, MANIFEST))
+    assert f"field {_path(path)}:" in msg and "finite" in msg
+
+
+@PROP
+@given(path=st.sampled_from(MANIFEST_POSITIVE),
+       value=st.floats(max_value=0.0, allow_nan=False, allow_infinity=False))
+def test_manifest_nonpositive_is_refused(path, value):
+    msg = _manifest_error(doc_with(path, value, MANIFEST))
+    assert _path(path).rsplit("/", 1)[0] in msg
+
+
+@PROP
+@given(path=st.sampled_from(MANIFEST_LEAVES), value=JUNK)
+def test_manifest_junk_never_escapes_as_another_error(path, value):
+    from difstar.io._manifest import manifest_from_dict
+
+    try:
+        manifest_from_dict(doc_with(path, value, MANIFEST), path=CAMPAIGN / "manifest.json")
+    except SceneError as exc:
+        assert "manifest.json" in str(exc)
+
+
+def test_validate_module_units():
+    from difstar._validate import (
+        InputError,
+        check_number,
+        check_polygon_vertices,
+        json_depth,
+        loads_strict,
+    )
+
+    with pytest.raises(InputError, match=r"field a/1: Infinity"):
+        loads_strict('{"a": [1, Infinity]}', source="x")
+    with pytest.raises(InputError, match="nested"):
+        loads_strict("[" * 10000 + "]" * 10000, source="x")
+    assert json_depth({"a": [[1]]}) == 3
+    with pytest.raises(InputError, match=r"f: nan is not a finite number; give a finite "
+                                         r"number > 0"):
+        check_number(float("nan"), "f", gt=0)
+    with pytest.raises(InputError, match="self-intersecting"):
+        check_polygon_vertices([[0, 0], [1, 1], [1, 0], [0, 1]])
+    assert check_polygon_vertices(np.array([[0, 0], [1, 0], [0, 1]])).shape == (3, 2)
