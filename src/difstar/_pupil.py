@@ -1033,7 +1033,8 @@ class Mask(AbstractPupil):
     """A pre-rasterised aperture: ``values`` (h, w) on square pixels of side ``pitch``
     metres, row 0 at the top (y up), the raster centred at ``centre`` (default the axis).
 
-    Each value is the open fraction (area coverage) of its own pixel, in [0, 1]: a
+    Each value is the open fraction (area coverage) of its own pixel, in [0, 1] (rounding
+    within 1e-9 is clipped): a
     boolean mask is read as 0/1 coverage (a True pixel is fully open, a False one fully
     closed); float masks must be finite and within [0, 1]. The mask is the piecewise-
     constant shape these pixels describe, and ``coverage`` resamples it by area to the
@@ -1071,10 +1072,12 @@ class Mask(AbstractPupil):
             if c is not None:
                 if not np.all(np.isfinite(c)):
                     raise ValueError("Mask.values contains NaN or infinity.")
-                if c.min() < 0 or c.max() > 1:
+                if c.min() < -1e-9 or c.max() > 1 + 1e-9:
                     raise ValueError(
                         f"Mask.values must be coverage fractions in [0, 1]; got the range "
                         f"[{c.min()}, {c.max()}].")
+                if c.min() < 0 or c.max() > 1:  # rounding (e.g. a computed coverage)
+                    v = jnp.clip(v, 0.0, 1.0)
         try:
             p = float(pitch)
         except (TypeError, jax.errors.ConcretizationTypeError) as e:
