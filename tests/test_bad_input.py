@@ -157,10 +157,10 @@ BAD_SCENE = [
     # 100000 blades compiled for minutes
     ("100000 blades", lambda d: d["camera"]["lens"]["pupil"].update(n=100000),
      ["camera/lens/pupil/n", "256"]),
-    ("crop 2 2", lambda d: d.update(grid={"crop": [2, 2]}), ["grid/crop/0", "8"]),
+    ("crop 2 2", lambda d: d.update(grid={"crop": [2, 2]}), ["grid/crop/", ">= 8"]),
     ("grid n 4", lambda d: d.update(grid={"n": 4}), ["grid/n"]),
     ("wavelength in nm", lambda d: d["camera"]["sensor"].update(wavelengths=[600, 530, 450]),
-     ["camera/sensor/wavelengths/0"]),
+     ["camera/sensor/wavelengths/", "<= 0.001"]),
     ("huge integer", lambda d: d["scene"].update(exposure_time=10**30),
      ["scene/exposure_time", "too large"]),
     ("negative phi0", lambda d: d["camera"]["sensor"].update(phi0=[0.1, -0.1, 0.1]),
@@ -339,7 +339,9 @@ def test_fit_refuses_what_predict_refuses(work, capsys):
     refused(["fit", p, "--max-steps", -5], capsys, work, "--max-steps")
     refused(["fit", p, "--max-steps", 0], capsys, work, "--max-steps")
     refused(["fit", p, "--recovery-study", -1], capsys, work, "--recovery-study")
-    refused(["fit", p, "--out", p], capsys, work, "is a file")
+    refused(["fit", p, "--out", p], capsys, work, "input")
+    f = write_text(work / "afile", "x")
+    refused(["fit", p, "--out", f], capsys, work, "is a file")
     refused(["fit", p, "--out", work, "--overwrite"], capsys, work, "current folder")
 
 
@@ -366,11 +368,16 @@ def test_synth_never_deletes_the_manifest(work, capsys):
     man = base_manifest(work)
     for c in man["captures"]:
         c["file"] = Path(c["file"]).name  # captures beside the manifest
-    p = write_text(work / "manifest.json", json.dumps(man))
-    write_text(work / "notes.txt", "mine")
+    (work / "camp").mkdir()
+    p = write_text(work / "camp" / "manifest.json", json.dumps(man))
     refused(["synth", p, "--overwrite"], capsys, work, "input")
     (work / "caps").mkdir()
     write_text(work / "caps" / "notes.txt", "mine")
+    refused(["synth", p, "--out", work / "caps", "--overwrite"], capsys, work,
+            "not made by difstar")
+    # a folder holding the captures synth writes, and another file
+    for c in man["captures"]:
+        write_text(work / "caps" / c["file"], "old capture")
     refused(["synth", p, "--out", work / "caps", "--overwrite"], capsys, work, "notes.txt")
 
 
@@ -391,7 +398,7 @@ def test_help_gives_defaults(capsys):
         assert e.value.code == 0
     out = capsys.readouterr().out
     assert "(default: 8.0)" in out and "(default: 9)" in out and "default: 0" in out
-    assert "(default: 60, or 12 with --quick)" in out
+    assert "default: 60, or 12" in out and "(default: None)" not in out
 
 
 # ------------------------------------------------------------------- the Python API
@@ -460,8 +467,11 @@ def test_validators_pass_tracers_and_refuse_traced_nan():
         return refuse_nonfinite_traced(w, "wavelength") * 2
 
     assert float(f(1.0)) == 2.0
-    with pytest.raises(eqx.EquinoxRuntimeError, match="wavelength is NaN or infinite"):
+    with pytest.raises(Exception, match="wavelength is NaN or infinite"):
         jax.block_until_ready(f(jnp.nan))
+    with pytest.raises(Exception, match="wavelength is NaN or infinite"):
+        refuse_nonfinite_traced(jnp.asarray([1.0, jnp.inf]), "wavelength")
+    assert eqx is not None
 
 
 # --------------------------------------------------------------- signals, killed runs
@@ -482,9 +492,10 @@ def _wait_for_tmp(work: Path, proc, timeout=120.0) -> Path:
         if tmps:
             return tmps[0]
         if proc.poll() is not None:
-            raise AssertionError(proc.stderr.read().decode())
+            raise AssertionError(proc.communicate()[1].decode())
         time.sleep(0.05)
     proc.kill()
+    proc.communicate()
     raise AssertionError("no temporary folder appeared")
 
 
@@ -509,7 +520,7 @@ def test_killed_run_is_cleaned_next_time(work, capsys):
     proc = _start_predict(work, out)
     tmp = _wait_for_tmp(work, proc)
     proc.kill()
-    proc.wait()
+    proc.communicate()
     assert tmp.exists()  # SIGKILL cannot be caught...
     code, err = run(["example", "paper-focused", "--out", work / "ex.json"], capsys)
     assert code == 0, err
