@@ -68,19 +68,30 @@ def render_srgb(
     white_balance: Float[ArrayLike, "3"],
     matrix: Float[ArrayLike, "3 3"],
     demosaic_method: str = "malvar2004",
+    highlight: str = "clip",
 ) -> Float[Array, "3 h w"]:
     """Render a normalised RAW mosaic ζ to an sRGB-encoded image (3, h, w) in [0, 1].
 
     white balance (per-channel gains on the mosaic) → demosaic (``demosaic_method``
-    "malvar2004" or "bilinear") → ``matrix`` (white-balanced camera RGB → linear sRGB)
-    → clip to [0, 1] → sRGB transfer curve. The pattern is static.
+    "malvar2004" or "bilinear") → highlight clip → ``matrix`` (white-balanced camera RGB
+    → linear sRGB) → clip to [0, 1] → sRGB transfer curve. The pattern and ``highlight``
+    are static.
 
-    Clipping happens only after the matrix, so pixels saturated in the RAW can take a
-    colour cast when the gains differ (the same happens to a photograph rendered the same
-    way, so predictions and captures stay comparable).
+    ``highlight="clip"`` (default, what dcraw/LibRaw do by default): the white-balanced
+    camera RGB is clipped above at min(white_balance), the largest value every channel
+    can still record (a RAW value of 1 times the smallest gain; 1 for gains normalised
+    to G = 1). A pixel saturated in every channel then becomes (g, g, g) and renders
+    neutral through any matrix whose rows sum to 1; without the clip, gains such as
+    [2, 1, 2] turn it into (2, 1, 2), which a real camera matrix renders magenta. For an
+    identity matrix and min(white_balance) ≥ 1 the clip changes nothing (the final clip
+    to [0, 1] does the same). ``highlight="none"``: no clip before the matrix.
     """
+    if highlight not in ("clip", "none"):
+        raise ValueError(f"highlight must be 'clip' or 'none'; got {highlight!r}")
     balanced = _white_balance(cfa, white_balance, pattern)
     rgb_cam = demosaic(balanced, pattern, method=demosaic_method)
+    if highlight == "clip":
+        rgb_cam = jnp.minimum(rgb_cam, jnp.min(jnp.asarray(white_balance, rgb_cam.dtype)))
     return srgb_encode(camera_to_srgb(rgb_cam, matrix))
 
 

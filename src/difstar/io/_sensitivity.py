@@ -84,6 +84,11 @@ def load_spectral_sensitivity(path: str | Path) -> Any:
 def _illuminant_sd(illuminant: Any, shape: Any) -> Any:
     import colour  # noqa: PLC0415
 
+    if isinstance(illuminant, (int, float)) and not isinstance(illuminant, bool):
+        t = float(illuminant)
+        if not (np.isfinite(t) and t > 0):
+            raise ValueError(f"illuminant temperature must be finite and > 0 kelvin; got {t}")
+        return colour.sd_blackbody(t, shape)  # a blackbody at this temperature (K)
     if isinstance(illuminant, str):
         if illuminant not in colour.SDS_ILLUMINANTS:
             raise ValueError(
@@ -109,7 +114,8 @@ def white_balance_from_sensitivities(
 ) -> np.ndarray:
     """White-balance gains (3,) for (R, G, B) that make ``illuminant`` neutral in camera
     RGB (``colour.characterisation.white_balance_multipliers``), normalised to G = 1 as
-    RAW files store them."""
+    RAW files store them. ``illuminant``: as in
+    :func:`camera_to_srgb_matrix_from_sensitivities` (a name, an SD, or kelvin)."""
     import colour  # noqa: PLC0415
 
     sens = _aligned(sensitivities)
@@ -133,7 +139,8 @@ def camera_to_srgb_matrix_from_sensitivities(
     :func:`white_balance_from_sensitivities` (or a RAW file's as-shot white balance for
     the same illuminant); render_srgb applies white balance before the matrix.
 
-    ``illuminant``: a name in ``colour.SDS_ILLUMINANTS`` or a SpectralDistribution.
+    ``illuminant``: a name in ``colour.SDS_ILLUMINANTS``, a SpectralDistribution, or a
+    number: a blackbody at that temperature in kelvin (e.g. 5000).
     """
     import colour  # noqa: PLC0415
 
