@@ -319,9 +319,9 @@ class RadialInterpolant:
     """Piecewise Chebyshev interpolant of a smooth radial function f(r) on [0, r_max]:
     panels of width ``h``, ``n`` Chebyshev (first-kind) points each. f is evaluated once,
     vectorised, at all points; the interpolant is then evaluated by Clenshaw's recurrence.
-    For a function of exponential type τ (here the intensity, τ = 2π D/(2 λ z)·2), the error
-    on a panel is ~ (e τ h / 4n)^n; h ≈ λ z/(2 D)·…, n = 20 keep it below 1e-12 (checked
-    against direct evaluation in ``test_references_agree``)."""
+    For a function of exponential type τ (the intensity: τ = 2π ν_c, ν_c = D/(λ z) its band
+    limit) the error on a panel is ~ (e τ h / 4n)^n: h = 1/ν_c, n = 24 keep it near 1e-14
+    (checked against direct evaluation in ``test_references_agree``)."""
 
     def __init__(self, f, r_max: float, h: float, n: int = 20):
         self.h = float(h)
@@ -354,14 +354,15 @@ def radial_psf(intensity_radial, *, shape, pixel_pitch, sampling: str, band_cycl
     """Pixel values of a rotationally symmetric density I(r) (centred on the axis).
 
     I(r) is tabulated by :class:`RadialInterpolant` out to the window's farthest corner
-    (panels of h = 1/(4 ν_c) where ν_c is the intensity's band limit in cycles/m), then
+    (panels of h = 1/ν_c, 24 points each, where ν_c is the intensity's band limit in
+    cycles/m: the interpolant's error is ~1e-14 of the peak, even with 50 waves of defocus), then
     integrated per pixel (``integrate_over_pixels``)."""
     p = float(pixel_pitch)
     hgt, wdt = shape
     r_max = math.hypot(max(wdt // 2, wdt - wdt // 2) + 1, max(hgt // 2, hgt - hgt // 2) + 1) * p
     if h is None:
-        h = 0.25 / band_cycles_per_m
-    interp = RadialInterpolant(intensity_radial, r_max, h)
+        h = 1.0 / band_cycles_per_m
+    interp = RadialInterpolant(intensity_radial, r_max, h, n=24)
     if nodes is None:
         nodes = pixel_nodes_for(band_cycles_per_m * p)
 

@@ -68,6 +68,17 @@ def test_references_agree():
         ee = 2 * math.pi * np.sum(w * x * R.circle_intensity_radial(
             x, radius=R8_, wavelength=lam, z=z, phase=lambda u: 0 * u))
         assert abs(ee - R.airy_encircled_energy(rr, radius=R8_, wavelength=lam, z=z)) < 1e-11
+    # the radial interpolant (panels of 1/ν_c, 24 points) against direct evaluation, 50 waves
+    ph50 = R.radial_phase(wavelength=lam, radius=R8_, waves=50.0)
+
+    def f50(rr):
+        return R.circle_intensity_radial(rr, radius=R8_, wavelength=lam, z=z, phase=ph50,
+                                         r_max=400e-6)
+
+    interp = R.RadialInterpolant(f50, 400e-6, lam * z / (2 * R8_), n=24)
+    rq = np.random.default_rng(3).uniform(0, 399e-6, 200)
+    direct = f50(rq)
+    assert np.max(np.abs(interp(rq) - direct)) < 1e-11 * np.max(direct)
     # the radial interpolant + pixel rule: a window's sum = the 1-D integral over the
     # window's rectangle (arc length inside × I(r)), for Airy and for 10 waves of defocus
     for shape, phase in (((64, 64), None),
@@ -195,7 +206,9 @@ def test_in_focus_orientation():
     shape = (64, 64)
     truth = _focus_truth("point", 0.3, shape)
     mirror = _focus_truth("point", -0.3, shape)
-    assert R.rel_rms(mirror, truth) > 0.1
+    # (a 7-gon's PSF repeats every π/7; the mirror is the PSF turned by 8.7°, 3.9e-3
+    # apart over this window, dominated by the round core: 39× the tolerance)
+    assert R.rel_rms(mirror, truth) > 2e-3
     got = _psf(difstar.RegularPolygon(7, R7, 0.3), wavelength=LAM, z_image=Z_FOCUS,
                pixel_pitch=P, shape=shape, sampling="point")
     assert R.rel_rms(got, truth) <= 1e-4
