@@ -61,6 +61,20 @@ from ._chain import (
     simulate as simulate,
 )
 from ._examples import paper_camera as paper_camera, paper_grid as paper_grid
+from ._zernike import (
+    Zernike as Zernike,
+    defocus_to_noll4 as defocus_to_noll4,
+    noll4_to_defocus as noll4_to_defocus,
+    noll_to_nm as noll_to_nm,
+)
+from ._spectrum import (
+    blackbody as blackbody,
+    channel_weights as channel_weights,
+    choose_wavelengths as choose_wavelengths,
+    error_table as error_table,
+    illuminant as illuminant,
+    user_spectrum as user_spectrum,
+)
 from ._sampling import choose_grid as choose_grid
 
 from ._design import (
