@@ -189,7 +189,7 @@ def check_output_free(dest: str | Path, *, overwrite: bool = False, inputs: Iter
             marker = read_marker(dest)
             allowed = set(marker.get("files", [])) if marker else set()
             ww = set(will_write or ())
-            if marker is None and not (ww and entries <= ww):
+            if marker is None and not ww:
                 raise OutputExistsError(
                     f"{what} {dest} was not made by difstar (it has no {MARKER} marker); "
                     "--overwrite replaces only a folder difstar made: choose another --out "
