@@ -187,3 +187,68 @@ def test_non_bayer_and_missing_values(tmp_path, name, shape, photometric, tags, 
     p = _dng(tmp_path / name, data, photometric, tags)
     with pytest.raises(RawReadError, match=match):
         read_raw(p)
+
+
+# --- truncation (issue 16), missing colour matrix and non-Bayer files (issue 15) --------
+
+SYNTHETIC = Path(__file__).resolve().parents[1] / "fit" / "synthetic-paper-camera" / "captures"
+
+
+@pytest.mark.parametrize("keep", [8, 9, 300, 500, 10_000, 1_000_000, 3_359_557])
+def test_truncated_copies_of_the_real_dng_are_refused(blackmagic, tmp_path, keep):
+    # LibRaw alone decodes a copy cut to its first 10 KB "successfully" (zeros or
+    # uninitialised memory); the file's own TIFF tags say how long it must be.
+    p = tmp_path / f"cut{keep}.dng"
+    p.write_bytes(blackmagic.read_bytes()[:keep])
+    with pytest.raises(RawReadError, match=rf"cut{keep}\.dng: truncated: .*{keep} bytes"):
+        read_raw(p)
+    assert _sha256(blackmagic) == BLACKMAGIC_SHA256
+
+
+def test_truncated_copies_of_the_synthetic_dngs_are_refused(tmp_path):
+    files = sorted(SYNTHETIC.glob("*.dng"))
+    if not files:
+        pytest.fail(f"synthetic captures missing: {SYNTHETIC}")
+    for src in files[:3]:
+        data = src.read_bytes()
+        before = _sha256(src)
+        read_raw(src)  # the whole file reads
+        for keep in (10_000, len(data) // 2, len(data) - 1):
+            p = tmp_path / f"{src.stem}_{keep}.dng"
+            p.write_bytes(data[:keep])
+            with pytest.raises(RawReadError, match=r"truncated: its TIFF tags declare image data"):
+                read_raw(p)
+        assert _sha256(src) == before and src.stat().st_size == len(data)
+
+
+def test_truncation_message_names_the_file_and_sizes(blackmagic, tmp_path):
+    p = tmp_path / "first10k.dng"
+    p.write_bytes(blackmagic.read_bytes()[:10_000])
+    with pytest.raises(RawReadError) as e:
+        read_raw(p)
+    msg = str(e.value)
+    assert msg.startswith(str(p)) and "3359558" in msg and "10000 bytes" in msg
+
+
+def test_missing_colour_matrix_warns_and_reads_the_mosaic(tmp_path):
+    from difstar.io import MissingColourMatrixWarning
+
+    data = np.random.default_rng(1).integers(0, 4000, (32, 48)).astype(np.uint16)
+    p = _dng(tmp_path / "nomatrix.dng", data, 32803,
+             [(33421, 3, 2, (2, 2), True), (33422, 1, 4, bytes([0, 1, 1, 2]), True),
+              (50728, 5, 3, (1, 2, 1, 1, 1, 2), True)])  # AsShotNeutral, no ColorMatrix
+    with pytest.warns(MissingColourMatrixWarning, match=r"nomatrix\.dng: no colour matrix.*sRGB"):
+        c = read_raw(p)
+    assert c.rgb_xyz_matrix is None and c.camera_to_srgb is None
+    assert c.pattern == "RGGB" and np.array_equal(c.raw, data)
+    np.testing.assert_allclose(c.camera_white_balance, [2.0, 1.0, 2.0])
+    with pytest.raises(RawReadError, match=r"nomatrix\.dng: no colour matrix.*XYZ"):
+        c.camera_to_xyz
+
+
+def test_monochrome_dng_is_a_clear_error(tmp_path):
+    data = np.random.default_rng(2).integers(0, 4000, (32, 48)).astype(np.uint16)
+    p = _dng(tmp_path / "mono.dng", data, "minisblack", [])
+    with pytest.raises(RawReadError,
+                       match=r"mono\.dng: not a Bayer sensor: monochrome.*difstar reads Bayer"):
+        read_raw(p)

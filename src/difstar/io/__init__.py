@@ -7,7 +7,17 @@ from ._pupil_photo import (
     PupilPolygon as PupilPolygon,
     estimate_pupil_polygon as estimate_pupil_polygon,
 )
-from ._raw import RawCapture as RawCapture, RawReadError as RawReadError, read_raw as read_raw
+from ._images import (
+    ImageData as ImageData,
+    ImageReadError as ImageReadError,
+    read_image as read_image,
+)
+from ._raw import (
+    MissingColourMatrixWarning as MissingColourMatrixWarning,
+    RawCapture as RawCapture,
+    RawReadError as RawReadError,
+    read_raw as read_raw,
+)
 from ._scene import (
     SceneError as SceneError,
     load_scene as load_scene,

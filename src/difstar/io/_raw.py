@@ -16,6 +16,8 @@ import contextlib
 import dataclasses
 import logging
 import os
+import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +33,12 @@ _D65 = 21
 class RawReadError(ValueError):
     """A RAW file that cannot be used: missing, unreadable, truncated, non-Bayer, or
     lacking a required value. The message names the file and the problem."""
+
+
+class MissingColourMatrixWarning(UserWarning):
+    """A RAW file read without a colour matrix (LibRaw has none for the camera and the
+    file carries none): the mosaic is usable (fitting needs only it), but rendering it
+    to sRGB needs a camera → XYZ matrix supplied by the user."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -53,9 +61,11 @@ class RawCapture:
     camera_white_balance : (3,) R, G, B as-shot multipliers normalised to G = 1.
     rgb_xyz_matrix : (3, 3) XYZ → camera RGB matrix (LibRaw's ``rgb_xyz_matrix``; for DNG
         files, where LibRaw leaves it zero, the file's ColorMatrix for D65 if present,
-        else ColorMatrix1). Rows: camera R, G, B; columns: X, Y, Z.
+        else ColorMatrix1). Rows: camera R, G, B; columns: X, Y, Z. None when neither
+        LibRaw nor the file has one (a ``MissingColourMatrixWarning`` is issued): the
+        mosaic can still be fitted; rendering to sRGB then needs a matrix.
     camera_to_srgb : (3, 3) camera RGB → linear sRGB matrix (LibRaw's ``color_matrix``,
-        rows summing to 1).
+        rows summing to 1); None when ``rgb_xyz_matrix`` is None.
     exposure_time : seconds, or None when the file does not say.
     f_number : dimensionless, or None.
     focal_length : metres, or None.
@@ -71,8 +81,8 @@ class RawCapture:
     white_level: float
     saturated: np.ndarray
     camera_white_balance: np.ndarray
-    rgb_xyz_matrix: np.ndarray
-    camera_to_srgb: np.ndarray
+    rgb_xyz_matrix: np.ndarray | None
+    camera_to_srgb: np.ndarray | None
     exposure_time: float | None
     f_number: float | None
     focal_length: float | None
@@ -92,6 +102,11 @@ class RawCapture:
     @property
     def camera_to_xyz(self) -> np.ndarray:
         """(3, 3) camera RGB → XYZ, the inverse of ``rgb_xyz_matrix``."""
+        if self.rgb_xyz_matrix is None:
+            raise RawReadError(
+                f"{self.path}: no colour matrix (LibRaw has none for this camera and the "
+                "file carries none); rendering to sRGB needs a camera → XYZ matrix: give "
+                "one explicitly.")
         return np.linalg.inv(self.rgb_xyz_matrix)
 
 
@@ -105,7 +120,14 @@ def read_raw(path: str | os.PathLike) -> RawCapture:
     Raises ``RawReadError`` (a ``ValueError``) naming the file when it is missing, not a
     RAW file LibRaw can read, unreadable or truncated, from a non-Bayer sensor (X-Trans,
     Foveon, monochrome, linear/demosaiced DNG, CMYG), or lacks a required value (levels,
-    white balance).
+    white balance). A file without a colour matrix is read (the mosaic is what a fit
+    needs) with a ``MissingColourMatrixWarning`` and ``rgb_xyz_matrix = None``.
+
+    Truncation: a TIFF-based RAW (DNG, NEF, CR2, ARW, PEF, ...) is checked before LibRaw
+    decodes it against the sizes its own tags declare: every IFD, the strip/tile offset
+    and byte-count arrays, and the strips/tiles themselves must lie inside the file
+    (LibRaw would otherwise decode a cut file "successfully" from uninitialised memory).
+    Other formats rely on LibRaw's own errors, reported with the file's name.
     """
     import rawpy
 
@@ -120,10 +142,20 @@ def read_raw(path: str | os.PathLike) -> RawCapture:
     except OSError as e:
         raise _err(path, f"cannot be opened for reading ({e.strerror or e})") from e
 
+    size = path.stat().st_size
+    if size == 0:
+        raise _err(path, "empty file (0 bytes), not a RAW file")
+    problem = _tiff_truncation(path, size)
+    if problem is not None:
+        raise _err(path, problem)
+
     try:
         rp = rawpy.imread(str(path))
     except rawpy.LibRawFileUnsupportedError as e:
-        raise _err(path, "not a RAW file LibRaw can read (unsupported format)") from e
+        kind = _tiff_kind(path)
+        if kind is not None:
+            raise _err(path, f"not a Bayer sensor: {kind}; {_SUPPORTED}") from e
+        raise _err(path, f"not a RAW file LibRaw can read (unsupported format); {_SUPPORTED}") from e
     except rawpy.LibRawError as e:
         raise _err(path, _diagnose(path, e)) from e
     except OSError as e:
@@ -189,6 +221,131 @@ def _tiff_data_end(path: Path) -> int | None:
         return None
 
 
+# TIFF field type → bytes per value; struct codes of the integer types offsets use
+_TIFF_TYPE_SIZE = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8,
+                   13: 4, 16: 8, 17: 8, 18: 8}
+_TIFF_INT = {1: "B", 3: "H", 4: "I", 13: "I", 16: "Q", 18: "Q"}
+_DATA_TAGS = ((273, 279, "strip"), (324, 325, "tile"))  # offsets, byte counts
+_IFD_POINTERS = (330, 34665)  # SubIFDs (where DNGs keep the raw image), EXIF IFD
+
+
+def _tiff_truncation(path: Path, size: int) -> str | None:
+    """Why a TIFF-based file is cut short, or None (also for files that are not TIFF).
+
+    Walks the IFD chain and the SubIFD/EXIF IFDs the file declares (classic and
+    BigTIFF) and checks that every IFD, the strip/tile offset and byte-count arrays and
+    the strips/tiles themselves lie inside the file; then the same data extents as
+    ``tifffile`` parses them. Tag values other than these are not checked (a damaged
+    private tag does not stop LibRaw)."""
+    def cut(what: str, end: int) -> str:
+        return (f"truncated: its TIFF tags declare {what} up to byte {end} but the file has "
+                f"only {size} bytes (cut short or incompletely copied)")
+
+    with path.open("rb") as fh:
+        head = fh.read(16)
+        if head[:4] in (b"II*\0", b"MM\0*"):
+            big = False
+        elif head[:4] in (b"II+\0", b"MM\0+"):
+            big = True
+        else:
+            return None
+        bo = "<" if head[:2] == b"II" else ">"
+        ptr, cnt, entry = ("Q", "Q", 20) if big else ("I", "H", 12)
+        psize = struct.calcsize(ptr)
+        if len(head) < (16 if big else 8):
+            return (f"truncated: {size} bytes, shorter than the TIFF header it starts "
+                    f"({16 if big else 8} bytes)")
+        first = struct.unpack(bo + ptr, head[8:16] if big else head[4:8])[0]
+
+        def read_ints(typ: int, count: int, pos: int, inline_at: int | None):
+            code = _TIFF_INT.get(typ)
+            if code is None or count > 10_000_000:
+                return []
+            fh.seek(inline_at if inline_at is not None else pos)
+            return list(struct.unpack(f"{bo}{count}{code}", fh.read(count * struct.calcsize(code))))
+
+        queue, seen = [first], set()
+        while queue and len(seen) < 10_000:
+            off = queue.pop(0)
+            if off == 0 or off in seen:
+                continue
+            seen.add(off)
+            csize = struct.calcsize(cnt)
+            if off + csize > size:
+                return cut(f"an IFD at byte {off}", off + csize)
+            fh.seek(off)
+            n = struct.unpack(bo + cnt, fh.read(csize))[0]
+            end = off + csize + n * entry + psize
+            if end > size:
+                return cut(f"an IFD of {n} entries at byte {off}", end)
+            buf = fh.read(n * entry + psize)
+            tags = {}
+            for i in range(n):
+                e = buf[i * entry:(i + 1) * entry]
+                code, typ = struct.unpack(bo + "HH", e[:4])
+                count = struct.unpack(bo + ptr, e[4:4 + psize])[0]
+                nbytes = count * _TIFF_TYPE_SIZE.get(typ, 1)
+                if nbytes <= psize:  # stored in the entry itself
+                    tags[code] = (typ, count, off + csize + i * entry + 4 + psize, True, nbytes)
+                else:
+                    voff = struct.unpack(bo + ptr, e[4 + psize:4 + 2 * psize])[0]
+                    tags[code] = (typ, count, voff, False, nbytes)
+            queue.append(struct.unpack(bo + ptr, buf[n * entry:n * entry + psize])[0])
+
+            def values(code):
+                typ, count, pos, inline, nbytes = tags[code]
+                return read_ints(typ, count, pos, pos if inline else None)
+
+            for code in (*(c for o, b, _ in _DATA_TAGS for c in (o, b)), *_IFD_POINTERS):
+                if code in tags and not tags[code][3]:
+                    _, _, pos, _, nbytes = tags[code]
+                    if pos + nbytes > size:
+                        return cut(f"the values of tag {code} (an offset table)", pos + nbytes)
+            for o_code, b_code, what in _DATA_TAGS:
+                if o_code in tags and b_code in tags:
+                    ends = [o + b for o, b in zip(values(o_code), values(b_code))]
+                    if ends and max(ends) > size:
+                        return cut(f"image data ({what}s)", max(ends))
+            for code in _IFD_POINTERS:
+                if code in tags:
+                    queue.extend(values(code))
+    end = _tiff_data_end(path)
+    if end is not None and end > size:
+        return cut("image data", end)
+    return None
+
+
+_SUPPORTED = (
+    "difstar reads Bayer RAW mosaics only (a 2×2 RGB colour filter array: RGGB, BGGR, GRBG "
+    "or GBRG, any camera LibRaw decodes)")
+
+
+def _tiff_kind(path: Path) -> str | None:
+    """What a TIFF/DNG image LibRaw refused holds, from its PhotometricInterpretation:
+    "monochrome ...", "linear ...", "an RGB ..."; None when it cannot tell."""
+    try:
+        import tifffile
+
+        with _quiet_tifffile(), tifffile.TiffFile(path) as tif:
+            pages = list(tif.pages)
+            for p in list(pages):
+                pages.extend(getattr(p, "pages", []) or [])
+            kinds = set()
+            for p in pages:
+                phot = int(getattr(p, "photometric", -1))
+                if phot in (0, 1) and int(getattr(p, "samplesperpixel", 1)) == 1:
+                    kinds.add("monochrome (no colour filter array)")
+                elif phot == 34892:
+                    kinds.add("a linear (already demosaiced) DNG")
+                elif phot == 2:
+                    kinds.add("an RGB image (already demosaiced), not a RAW mosaic")
+                elif phot == 32803:
+                    return None  # a CFA image: LibRaw's refusal has another reason
+            return sorted(kinds)[0] if kinds else None
+    except Exception:
+        return None
+
+
 def _sensor_check(path: Path, rp) -> None:
     import rawpy
 
@@ -201,16 +358,16 @@ def _sensor_check(path: Path, rp) -> None:
             if ncol == 1
             else "a non-mosaic sensor (Foveon/layered or linear/demosaiced DNG)"
         )
-        raise _err(path, f"not a Bayer sensor: {kind}; only Bayer CFA mosaics are supported")
+        raise _err(path, f"not a Bayer sensor: {kind}; {_SUPPORTED}")
     if pat.shape == (6, 6):
-        raise _err(path, "not a Bayer sensor: X-Trans (6×6 CFA); only Bayer mosaics are supported")
+        raise _err(path, f"not a Bayer sensor: X-Trans (6×6 CFA); {_SUPPORTED}")
     if ncol == 1:
-        raise _err(path, "not a Bayer sensor: monochrome; only Bayer CFA mosaics are supported")
+        raise _err(path, f"not a Bayer sensor: monochrome (no colour filter array); {_SUPPORTED}")
     if pat.shape != (2, 2) or ncol != 3:
         raise _err(
             path,
             f"not a Bayer sensor: CFA {pat.shape[0]}×{pat.shape[1]} with {ncol} colours "
-            f"({desc}); only RGB Bayer 2×2 mosaics are supported",
+            f"({desc}); {_SUPPORTED}",
         )
 
 
@@ -262,9 +419,17 @@ def _capture(path: Path, rp) -> RawCapture:
     xyz_cam = np.asarray(rp.rgb_xyz_matrix, dtype=np.float64)[:3, :3]
     if not np.any(xyz_cam):
         xyz_cam = _dng_color_matrix(tags)
-    if xyz_cam is None or not np.all(np.isfinite(xyz_cam)) or abs(np.linalg.det(xyz_cam)) < 1e-12:
-        raise _err(path, "missing colour matrix (neither LibRaw nor the DNG tags give one)")
-    cam_srgb = np.asarray(rp.color_matrix, dtype=np.float64)[:3, :3].copy()
+    if xyz_cam is None or not np.any(xyz_cam):
+        warnings.warn(
+            f"{path}: no colour matrix (LibRaw has none for this camera and the file "
+            "carries none); the mosaic is read as is (fitting needs only it), but rendering "
+            "it to sRGB will need a camera → XYZ matrix given explicitly.",
+            MissingColourMatrixWarning, stacklevel=3)
+        xyz_cam = cam_srgb = None
+    else:
+        if not np.all(np.isfinite(xyz_cam)) or abs(np.linalg.det(xyz_cam)) < 1e-12:
+            raise _err(path, f"invalid colour matrix (singular or not finite): {xyz_cam.tolist()}")
+        cam_srgb = np.asarray(rp.color_matrix, dtype=np.float64)[:3, :3].copy()
 
     other = getattr(rp, "other", None)
     t = _tag_float(tags, _EXPOSURE_TIME)
@@ -278,7 +443,8 @@ def _capture(path: Path, rp) -> RawCapture:
         f_mm = float(other.focal_length)
 
     for a in (cfa, raw, black, saturated, wb3, xyz_cam, cam_srgb, colors):
-        a.setflags(write=False)
+        if a is not None:
+            a.setflags(write=False)
     return RawCapture(
         path=path,
         cfa=cfa,
