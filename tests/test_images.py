@@ -107,7 +107,8 @@ def test_fits_round_trips_hdus_cubes_and_nan(tmp_path):
     c = tmp_path / "cube.fits"
     cube = np.stack([_image(seed=s) for s in range(3)])
     fits.PrimaryHDU(cube).writeto(c)
-    with pytest.raises(ImageReadError, match=r"cube\.fits: a cube of shape \(3, 12, 17\): pass plane="):
+    with pytest.raises(ImageReadError,
+                       match=r"cube\.fits: a cube of shape \(3, 12, 17\): pass plane="):
         read_image(c)
     np.testing.assert_array_equal(read_image(c, plane=1).data, cube[1][::-1])
     with pytest.raises(ImageReadError, match=r"plane must be an integer in \[0, 3\)"):
@@ -191,7 +192,8 @@ def test_unsupported_and_missing_files(tmp_path):
         read_image(tmp_path)
     t = tmp_path / "notes.txt"
     t.write_text("hello\n")
-    with pytest.raises(ImageReadError, match=r"notes\.txt: unsupported image format; difstar reads FITS"):
+    with pytest.raises(ImageReadError,
+                       match=r"notes\.txt: unsupported image format; difstar reads FITS"):
         read_image(t)
     j = tmp_path / "photo.jpg"
     j.write_bytes(b"\xff\xd8\xff\xe0" + bytes(100))

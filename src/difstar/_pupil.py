@@ -958,7 +958,8 @@ class Transformed(AbstractPupil):
 
     def __init__(self, pupil, rotation=0.0, centre=(0.0, 0.0)):
         if not isinstance(pupil, AbstractPupil):
-            raise TypeError(f"Transformed.pupil must be a difstar pupil; got {type(pupil).__name__}.")
+            raise TypeError(
+                f"Transformed.pupil must be a difstar pupil; got {type(pupil).__name__}.")
         self.pupil = pupil
         self.rotation = _float(rotation)
         self.centre = _float(centre)

@@ -1,5 +1,6 @@
 """difstar's outer layer: files in and out (RAW captures, DNG, scene files, spectral
-sensitivities, aperture photos, intensity images: FITS, TIFF, PNG, NumPy). Nothing here is traced by jit."""
+sensitivities, aperture photos, intensity images: FITS, TIFF, PNG, NumPy). Nothing here
+is traced by jit."""
 
 from ._dng import DngWriteError as DngWriteError, synthesize_capture as synthesize_capture, write_dng as write_dng
 from ._pupil_photo import (

@@ -155,7 +155,8 @@ def read_raw(path: str | os.PathLike) -> RawCapture:
         kind = _tiff_kind(path)
         if kind is not None:
             raise _err(path, f"not a Bayer sensor: {kind}; {_SUPPORTED}") from e
-        raise _err(path, f"not a RAW file LibRaw can read (unsupported format); {_SUPPORTED}") from e
+        raise _err(
+            path, f"not a RAW file LibRaw can read (unsupported format); {_SUPPORTED}") from e
     except rawpy.LibRawError as e:
         raise _err(path, _diagnose(path, e)) from e
     except OSError as e:
