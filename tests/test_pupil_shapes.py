@@ -432,3 +432,20 @@ def test_boolean_mask_psf_matches_the_analytic_pupil():
     got = difstar.psf(mask, **kw)
     assert float(jnp.max(jnp.abs(got - want)) / jnp.max(want)) < 2e-3
     assert float(jnp.sum(got)) == pytest.approx(float(jnp.sum(want)), rel=2e-3)
+
+
+def test_polygon_checks_self_intersection_before_orientation():
+    eight = np.array([[0, 0], [1, 1], [1, 0], [0, 1]], float)  # a bow tie: zero area
+    with pytest.raises(ValueError, match="edges 0 and 2 cross"):
+        Polygon(eight)
+    lopsided = np.array([[0, 0], [2, 2], [2, 0], [0, 1]], float)  # negative net area
+    with pytest.raises(ValueError, match="cross; the polygon must be simple"):
+        Polygon(lopsided)
+    with pytest.raises(ValueError, match="clockwise"):
+        Polygon(_square(0, 0, 1)[::-1])
+    # a many-vertex simple polygon is checked quickly (vectorised)
+    import time
+
+    t = time.perf_counter()
+    Polygon(np.asarray(RegularPolygon(2000, 1.0).vertices))
+    assert time.perf_counter() - t < 10.0

@@ -297,8 +297,38 @@ class AbstractPupil(eqx.Module):
         return Transformed(self, rotation, centre)
 
 
+def _first_crossing(v: np.ndarray, w: np.ndarray) -> tuple[int, int] | None:
+    """First pair (i, j), i < j, of non-adjacent edges v[k] → w[k] that cross properly;
+    vectorised in blocks of rows (O(n²) work, O(n · block) memory)."""
+    n = len(v)
+
+    def orient(a, b, c):
+        return np.sign((b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1])
+                       - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0]))
+
+    j = np.arange(n)[None, :]
+    for lo in range(0, n, 256):
+        i = np.arange(lo, min(n, lo + 256))[:, None]
+        p1, p2 = v[i[:, 0]][:, None, :], w[i[:, 0]][:, None, :]
+        p3, p4 = v[None, :, :], w[None, :, :]
+        cross = ((orient(p1, p2, p3) * orient(p1, p2, p4) < 0)
+                 & (orient(p3, p4, p1) * orient(p3, p4, p2) < 0))
+        cross &= (j >= i + 2) & ~((i == 0) & (j == n - 1))
+        hits = np.argwhere(cross)
+        if len(hits):
+            return int(hits[0][0] + lo), int(hits[0][1])
+    return None
+
+
 def _check_ccw_simple(v: np.ndarray, name: str) -> None:
     w = np.roll(v, -1, axis=0)
+    # self-intersection first: a figure-8's orientation is meaningless
+    hit = _first_crossing(v, w)
+    if hit is not None:
+        raise ValueError(
+            f"{name}: edges {hit[0]} and {hit[1]} cross; the polygon must be simple "
+            "(non-self-intersecting, e.g. not a figure-8)."
+        )
     area = 0.5 * np.sum(v[:, 0] * w[:, 1] - w[:, 0] * v[:, 1])
     if area < 0:
         raise ValueError(
@@ -307,16 +337,6 @@ def _check_ccw_simple(v: np.ndarray, name: str) -> None:
         )
     if area == 0:
         raise ValueError(f"{name}: the polygon has zero area.")
-    n = len(v)
-    for i in range(n):  # no two non-adjacent edges may cross (a simple polygon)
-        for j in range(i + 2, n):
-            if i == 0 and j == n - 1:
-                continue
-            if _segments_cross(v[i], w[i], v[j], w[j]):
-                raise ValueError(
-                    f"{name}: edges {i} and {j} cross; the polygon must be simple "
-                    "(non-self-intersecting)."
-                )
 
 
 def _segments_cross(p1, p2, p3, p4) -> bool:
