@@ -408,6 +408,11 @@ def test_rotated_mask_approximates_the_rotated_shape():
     assert float(jnp.max(jnp.abs(got - want))) < 0.1
     shifted = mask.transformed(0.0, (0.05, 0.0))
     assert isinstance(shifted, Mask)
+    # the rotated, shifted mask's max_radius: its farthest open pixel corner, moved
+    moved = mask.transformed(0.25, (0.05, 0.0))
+    rm = float(moved.max_radius())
+    assert float(poly.transformed(0.25, (0.05, 0.0)).max_radius()) < rm
+    assert rm < float(poly.transformed(0.25, (0.05, 0.0)).max_radius()) + 1.5 * pitch
 
 
 def test_boolean_mask_psf_matches_the_analytic_pupil():

@@ -1050,6 +1050,9 @@ def _interp_edges(c: Array, u: Array, axis: int) -> Array:
     return lo + f * (hi - lo)
 
 
+_OPEN = 1e-9  # a Mask pixel above this is open (for max_radius)
+
+
 class Mask(AbstractPupil):
     """A pre-rasterised aperture: ``values`` (h, w) on square pixels of side ``pitch``
     metres, row 0 at the top (y up), the raster centred at ``centre`` (default the axis).
@@ -1069,8 +1072,8 @@ class Mask(AbstractPupil):
     (a rotated mask, see :class:`Transformed`) use the 2-D summed-area table, whose
     large partial sums lose digits in float32 for big masks.
 
-    ``max_radius`` is tight: the distance from the axis to the farthest corner of a
-    nonzero pixel.
+    ``max_radius`` is tight: the distance from the axis to the farthest corner of an
+    open pixel (value above 1e-9: rounding noise of a computed coverage is closed).
     """
 
     values: Float[Array, "h w"]
@@ -1111,7 +1114,7 @@ class Mask(AbstractPupil):
         if self.centre.shape != (2,):
             raise ValueError(f"Mask.centre must be (x, y); got shape {self.centre.shape}.")
         c = _concrete(v)
-        if c is not None and not np.any(c > 0):
+        if c is not None and not np.any(c > _OPEN):
             raise ValueError("Mask.values is zero everywhere: the aperture is closed.")
 
     def _pixel_units(self, x, y):
@@ -1155,7 +1158,7 @@ class Mask(AbstractPupil):
         fx = jnp.maximum(jnp.abs(xe[:-1]), jnp.abs(xe[1:]))
         fy = jnp.maximum(jnp.abs(ye[:-1]), jnp.abs(ye[1:]))
         r = jnp.sqrt(fy[:, None] ** 2 + fx[None, :] ** 2)
-        return jnp.max(jnp.where(self.values > 0, r, 0.0))
+        return jnp.max(jnp.where(self.values > _OPEN, r, 0.0))
 
     def area(self) -> Array:
         """Open area (m²): Σ values × pitch²."""
@@ -1164,7 +1167,11 @@ class Mask(AbstractPupil):
     def transformed(self, rotation=0.0, centre=(0.0, 0.0)) -> AbstractPupil:
         """Shifted only (``rotation`` statically 0): the same mask with its centre moved,
         exact. Otherwise the :class:`Transformed` wrapper (approximate at edges)."""
+        c = _float((0.0, 0.0) if centre is None else centre)
         if isinstance(rotation, (int, float)) and rotation == 0:
-            c = (0.0, 0.0) if centre is None else centre
-            return Mask(self.values, self.pitch, self.centre + _float(c))
-        return Transformed(self, rotation, (0.0, 0.0) if centre is None else centre)
+            return Mask(self.values, self.pitch, self.centre + c)
+        # R p + c = R (p + R⁻¹ c): shift the mask itself, then rotate about the axis, so
+        # that max_radius stays tight (a rotation about the axis keeps radii)
+        rotation = _float(rotation)
+        moved = Mask(self.values, self.pitch, self.centre + _rigid(c, -rotation, jnp.zeros(2)))
+        return Transformed(moved, rotation, (0.0, 0.0))
