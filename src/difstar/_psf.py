@@ -1,5 +1,7 @@
-"""Intensity point-spread function: PSF = |IFFT(ATF)|², integrated over each pixel,
-normalised to unit sum (paper Eq. 1), with the sampling rules of DESIGN.md checked.
+"""The public PSF: :func:`psf` (fraction of power per pixel on a window, by the engine
+of :mod:`._psf_engine`) and :func:`plan_psf`; and the FFT helpers the chain's grid path
+shares (intensity from an ATF, the cell correction, pixel binning, the sampling rules of
+the n × n grid).
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ import numpy as np
 from ._atf import SCALINGS, atf, pupil_scale
 from ._custom_types import Array, Float
 from ._pupil import AbstractPupil
+from ._psf_engine import DEFAULT_ACCURACY, SAMPLINGS, PSFPlan, evaluate
+from ._psf_engine import plan_psf as plan_window
 
 
 class SamplingError(ValueError):
@@ -125,6 +129,139 @@ def intensity_from_atf(h_atf, *, correct_cell: bool = True) -> Array:
     return intensity
 
 
+def _concrete_all(*xs):
+    """Python floats of ``xs`` (arrays flattened), or None if any is traced."""
+    out = []
+    for x in xs:
+        try:
+            out.append(np.asarray(x, dtype=float))
+        except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError,
+                TypeError):
+            return None
+    return out
+
+
+def _wavefront_slope(wavefront, radius: float) -> float | None:
+    """Largest |∇OPD| of a wavefront over the pupil's disc (concrete; None if traced)."""
+    if wavefront is None:
+        return 0.0
+    k = 97
+    xs = np.linspace(-radius, radius, k)
+    try:
+        opd = np.asarray(wavefront.opd(jnp.asarray(xs)[None, :], jnp.asarray(xs)[:, None]),
+                         dtype=float)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return None
+    if not np.all(np.isfinite(opd)):
+        raise ValueError("difstar.psf: wavefront OPD is not finite over the pupil; check "
+                         "its coefficients.")
+    gy, gx = np.gradient(opd, xs[1] - xs[0])
+    inside = np.hypot(*np.meshgrid(xs, xs)) <= radius
+    return float(np.max(np.hypot(gx, gy)[inside]))
+
+
+def plan_psf(
+    pupil: AbstractPupil,
+    *,
+    wavelength,
+    z_image,
+    defocus=0.0,
+    pixel_pitch: float,
+    shape: tuple[int, int],
+    sampling: str = "pixel",
+    accuracy: float | None = None,
+    wavefront=None,
+    scaling: str = "fresnel",
+    method: str | None = None,
+    max_radius: float | None = None,
+) -> PSFPlan:
+    """The :class:`PSFPlan` :func:`psf` would use (call it outside jit with concrete
+    values and pass it as ``psf(..., plan=...)`` where the pupil's size, the wavelength or
+    Δz are traced). ``max_radius`` overrides the pupil's (e.g. a bound over a design
+    family). Raises :class:`SamplingError` when the accuracy target cannot be met."""
+    from ._pupil import Polygon, RegularPolygon
+
+    if scaling not in SCALINGS:
+        raise ValueError(f"scaling must be one of {SCALINGS}; got {scaling!r}.")
+    if sampling not in SAMPLINGS:
+        raise ValueError(f"difstar.psf: sampling must be one of {SAMPLINGS}; got {sampling!r}.")
+    acc = DEFAULT_ACCURACY if accuracy is None else float(accuracy)
+    if not (math.isfinite(acc) and 1e-7 <= acc < 1):
+        raise ValueError(
+            f"difstar.psf: accuracy must be a relative RMS error in [1e-7, 1); got {accuracy!r}.")
+    h, w = _check_shape(shape)
+    vals = _concrete_all(pupil.max_radius() if max_radius is None else max_radius,
+                         wavelength, z_image, defocus, pixel_pitch)
+    if vals is None:
+        raise ValueError(
+            "difstar.psf: the pupil's size, the wavelength, z_image, defocus or the pitch is "
+            "traced (inside jit or grad), so the sampling cannot be planned there: make the "
+            "plan outside with plan = difstar.plan_psf(pupil, ...) (concrete values, "
+            "max_radius= a bound if the pupil's size varies) and pass psf(..., plan=plan).")
+    r, lams, z_r, dz, p = vals
+    r, z_r, dz, p = float(r), float(z_r), float(dz), float(p)
+    _check_positive_finite(lams=lams, z_r=z_r, p=p, r=r, dz=dz)
+    slope = _wavefront_slope(wavefront, r)
+    if slope is None:
+        raise ValueError("difstar.psf: the wavefront is traced; pass plan=difstar.plan_psf(...) "
+                         "made with concrete coefficients of about the same size.")
+    exact_ok = isinstance(pupil, (Polygon, RegularPolygon)) and wavefront is None
+    plan = plan_window(pupil_radius=r, wavelengths=lams.ravel(), z_image=z_r, defocus=dz,
+                       pixel_pitch=p, shape=(h, w), sampling=sampling, accuracy=acc,
+                       exact_ok=exact_ok, wavefront_slope=slope, scaling=scaling,
+                       method=method)
+    _check_cost(plan, (h, w), acc)
+    return plan
+
+
+def _check_shape(shape) -> tuple[int, int]:
+    try:
+        h, w = (int(s) for s in shape)
+    except (TypeError, ValueError):
+        raise ValueError(f"difstar.psf: shape must be (H, W) pixels; got {shape!r}.") from None
+    if h < 2 or w < 2:
+        raise ValueError(f"difstar.psf: shape must be at least (2, 2) pixels; got {shape!r}.")
+    return h, w
+
+
+def _check_positive_finite(*, lams, z_r, p, r, dz):
+    for name, v, unit in (("wavelength", lams, "metres, e.g. 550e-9"),
+                          ("z_image", z_r, "metres, the exit pupil to sensor distance"),
+                          ("pixel_pitch", p, "metres, e.g. 3.9e-6")):
+        v = np.asarray(v, float)
+        if not np.all(np.isfinite(v)) or not np.all(v > 0):
+            raise ValueError(f"difstar.psf: {name} must be finite and > 0 ({unit}); got {v}.")
+    if not math.isfinite(dz):
+        raise ValueError(f"difstar.psf: defocus must be finite (metres); got {dz}.")
+    if not z_r - dz > 0:
+        raise ValueError(f"difstar.psf: defocus ({dz}) must be smaller than z_image ({z_r}): "
+                         "the in-focus image z_image − defocus must lie behind the pupil.")
+    if not (math.isfinite(r) and r > 0):
+        raise ValueError(f"difstar.psf: the pupil's max_radius must be finite and > 0; got {r}.")
+    if np.any(np.asarray(lams) > 1e-4):
+        raise ValueError(f"difstar.psf: wavelength {np.max(lams)} m is over 100 µm: give it in "
+                         "metres (e.g. 550e-9), not in µm or nm.")
+
+
+#: Largest number of complex samples one window may hold (about 2.4 GB in complex128).
+_MAX_SAMPLES = 1.5e8
+
+
+def _check_cost(plan: PSFPlan, shape, accuracy):
+    if plan.method != "mft":
+        return
+    h, w = shape
+    pupil = (plan.pupil_window * plan.subcells) ** 2
+    out = h * w * plan.nodes**2
+    if max(pupil, out) > _MAX_SAMPLES:
+        raise SamplingError(
+            f"difstar.psf: the accuracy target {accuracy:g} needs a pupil of "
+            f"{plan.pupil_window} x {plan.pupil_window} samples with {plan.subcells}² sub-cells "
+            f"and {plan.nodes}² nodes per pixel on {h} x {w} pixels, over the memory limit; "
+            f"use a larger accuracy (e.g. {min(0.5, accuracy * 10):g}), a smaller window, or "
+            f"sampling='point'.")
+
+
 def psf(
     pupil: AbstractPupil,
     *,
@@ -133,52 +270,85 @@ def psf(
     defocus=0.0,
     pixel_pitch: float,
     shape: tuple[int, int],
-    oversample: int = 1,
+    sampling: str = "pixel",
+    accuracy: float | None = None,
+    wavefront=None,
+    weights=None,
     scaling: str = "fresnel",
+    method: str | None = None,
+    plan: PSFPlan | None = None,
+    oversample: int | None = None,
     check: bool = True,
 ) -> Float[Array, "h w"]:
-    """The intensity PSF on the pixel grid, summing to 1, centred on pixel (H//2, W//2).
+    """The PSF on an (H, W) pixel window: each value the fraction of the power through
+    the pupil that lands on that pixel. Summed over the infinite plane it is 1; over a
+    window it is ≤ 1 (the light beyond the window is not folded in).
+
+    The window is centred on the optical axis at pixel (H//2, W//2); rows run down the
+    image and y points up: row k is at y = −(k − H//2)·p, column k at x = (k − W//2)·p.
+    Pupil vertices are counter-clockwise with y up, a rotation is counter-clockwise.
 
     Args:
         pupil: exit-pupil shape (metres).
-        wavelength: metres.
+        wavelength: metres; an array with ``weights`` gives the weighted sum (weights
+            normalised to 1) of the monochromatic PSFs on the same pixels.
         z_image: exit pupil to sensor, z_R (metres).
-        defocus: Δz, sensor minus in-focus image plane (metres). A Python ``0`` or
-            ``0.0`` drops the defocus phase from the computation.
+        defocus: Δz, sensor minus in-focus image plane (metres); the in-focus image is at
+            z_i = z_R − Δz.
         pixel_pitch: p, metres.
         shape: (H, W) pixels.
-        oversample: q sub-samples per pixel a side; the PSF is computed on a grid of pitch
-            p/q and integrated over each pixel.
-        scaling: "fresnel" (default, DESIGN.md) or "paper" (paper Eq. 2–4, pupil scaled
-            by λ z_i).
-        check: raise :class:`SamplingError` when a sampling rule fails (only where the
-            inputs are concrete; inside jit the caller checks once outside).
+        sampling: "pixel" (default): the intensity integrated over each pixel's square
+            (fill factor 1), by a Gauss–Legendre rule whose error is bounded below the
+            target (the intensity is band-limited); "point": the intensity at the pixel's
+            centre × the pixel's area.
+        accuracy: relative RMS error over the window the engine must meet (default
+            1e-3); the method and its sampling are chosen for it (``plan_psf``).
+        wavefront: an optical path difference added to the pupil, e.g.
+            :class:`difstar.Zernike` (anything with ``opd(x, y)`` in metres).
+        scaling: "fresnel" (default) or "paper" (the paper's Eq. 2–4, pupil scaled by λ z_i).
+        method: None (chosen), "exact" (in-focus polygons, closed form) or "mft"
+            (sampled pupil, matrix DFT to the window).
+        plan: a :class:`PSFPlan` from :func:`plan_psf`, needed where the pupil's size,
+            the wavelength or Δz are traced (inside jit or grad).
+        oversample: ignored (pixel integration no longer needs it); kept so that older
+            calls run.
+        check: kept for older calls; the plan always meets the accuracy or raises
+            :class:`SamplingError`.
     """
-    if scaling not in SCALINGS:
-        raise ValueError(f"scaling must be one of {SCALINGS}; got {scaling!r}.")
-    if not (isinstance(oversample, (int, np.integer)) and oversample >= 1):
+    del check
+    if oversample is not None and not (isinstance(oversample, (int, np.integer))
+                                       and oversample >= 1):
         raise ValueError(f"oversample must be an integer >= 1; got {oversample!r}.")
-    h, w = (int(s) for s in shape)
-    if h < 2 or w < 2:
-        raise ValueError(f"shape must be at least (2, 2) pixels; got {shape!r}.")
-    q = int(oversample)
-    static_zero = isinstance(defocus, (int, float)) and defocus == 0
-    if check:
-        vals = [_concrete(v) for v in (pupil.max_radius(), wavelength, z_image, defocus)]
-        if all(v is not None for v in vals):
-            r, lam, z_r, dz = vals
-            fails = sampling_report(
-                pupil_radius=r, wavelength=lam, z_image=z_r, defocus=dz,
-                pixel_pitch=pixel_pitch, oversample=q, n=min(h, w) * q, scaling=scaling,
-            )
-            if fails:
-                raise SamplingError("difstar.psf: " + " ".join(fails))
-    shift = (block_centring_shift(h, q), block_centring_shift(w, q))
-    h_atf = atf(
-        pupil, wavelength=wavelength, z_image=z_image, defocus=defocus,
-        dx=pixel_pitch / q, shape=(h * q, w * q), scaling=scaling,
-        use_defocus=not static_zero, shift=shift, cell_average=pupil.area_coverage,
-    )
-    fine = intensity_from_atf(h_atf, correct_cell=pupil.area_coverage)
-    out = bin_pixels(fine, q)
-    return out / jnp.sum(out)
+    h, w = _check_shape(shape)
+    if plan is None:
+        plan = plan_psf(pupil, wavelength=wavelength, z_image=z_image, defocus=defocus,
+                        pixel_pitch=pixel_pitch, shape=(h, w), sampling=sampling,
+                        accuracy=accuracy, wavefront=wavefront, scaling=scaling,
+                        method=method)
+    elif not isinstance(plan, PSFPlan):
+        raise TypeError(f"difstar.psf: plan must be a PSFPlan from difstar.plan_psf; got "
+                        f"{type(plan).__name__}.")
+    lam = jnp.asarray(wavelength, dtype=float)
+
+    def one(lam1):
+        return evaluate(pupil, lam1, z_image=z_image, defocus=defocus,
+                        pixel_pitch=float(pixel_pitch), shape=(h, w), scaling=scaling,
+                        wavefront=wavefront, plan=plan)
+
+    if lam.ndim == 0:
+        if weights is not None:
+            raise ValueError("difstar.psf: weights need an array of wavelengths.")
+        return one(lam)
+    if lam.ndim != 1 or lam.size < 1:
+        raise ValueError(f"difstar.psf: wavelength must be a number or a 1-D array; got "
+                         f"shape {lam.shape}.")
+    wts = jnp.ones_like(lam) if weights is None else jnp.asarray(weights, dtype=float)
+    if wts.shape != lam.shape:
+        raise ValueError(f"difstar.psf: weights must have the wavelengths' shape {lam.shape}; "
+                         f"got {wts.shape}.")
+    wv = _concrete_all(wts)
+    if wv is not None and (not np.all(np.isfinite(wv[0])) or np.any(wv[0] < 0)
+                           or not np.sum(wv[0]) > 0):
+        raise ValueError("difstar.psf: weights must be finite, >= 0 and not all 0.")
+    wts = wts / jnp.sum(wts)
+    return jnp.einsum("l,lhw->hw", wts, jax.vmap(one)(lam))

@@ -1,0 +1,363 @@
+"""The PSF engine behind :func:`difstar.psf`: one plan, two exact methods, nothing folded in.
+
+Given the pupil, wavelength, z_R (exit pupil to sensor), Δz, the pixel pitch, the window
+and an accuracy target, :func:`plan_psf` decides (outside jit, on concrete values) how the
+window is computed, and :func:`evaluate` computes it (pure, jittable, differentiable):
+
+``"exact"`` — in focus, polygonal pupils, no wavefront error: the closed-form transform of
+    the polygon (Lee & Mittra; :mod:`._mft`) at exactly the points needed. No grid, no
+    period, no aliasing.
+``"mft"`` / ``"fft"`` — everything else: the pupil (area coverage × the phase of defocus and of any
+    wavefront error, averaged over each cell's covered part on ``subcells`` × ``subcells``
+    sub-cells) on a square frequency grid of spacing 1/L, transformed by a matrix DFT to
+    exactly the points needed. The field is periodic with period L (the pupil is sampled),
+    so L is chosen so that its copies do not reach the window to the accuracy target;
+    the window itself is never a period, unlike an FFT on a grid of the window's size.
+    For large windows the same transform runs as pruned FFTs of length L/p ("fft": the
+    pupil's rows first, then only the window's columns; sub-pixel nodes are phase
+    ramps), which the plan picks where it costs less.
+
+The points needed: the pixel centres (``sampling="point"``) or, for the integral of the
+intensity over each pixel's square (``sampling="pixel"``, fill factor 1), ``nodes`` ×
+``nodes`` Gauss–Legendre nodes per pixel; the intensity is band-limited (its spectrum, the
+OTF, vanishes beyond 2 r/(λ z_R)), so the rule's error is bounded by that of one
+exponential at the band edge, and ``nodes`` is the fewest that meet the target.
+
+Every value is the fraction of the power through the pupil that lands on the pixel
+(summed over the infinite plane it is 1): the point value is the intensity at the
+centre times the pixel's area, the pixel value the intensity's integral over the pixel.
+
+Conventions: rows run down, y up: row k at y = −(k − H//2)·p, column k at x = (k − W//2)·p.
+The field is U(x) ∝ ∫ P(ξ) e^{i k W(ξ)} e^{+2πi x·ξ/(λ z_R)} dξ with W = ½(1/z_i − 1/z_R)|ξ|²
++ the wavefront's OPD: beyond focus (Δz > 0) the geometric blur is the pupil turned by
+180°, as rays that crossed the axis draw it.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._atf import defocus_phase_coefficient, pupil_scale
+from ._custom_types import Array, Float
+
+#: Default accuracy target of :func:`difstar.psf`: relative RMS error over the window.
+DEFAULT_ACCURACY = 1e-3
+
+METHODS = ("exact", "mft", "fft")
+SAMPLINGS = ("pixel", "point")
+
+# Calibration of the period (tests/test_psf_truths.py and BENCHMARKS.md measure the
+# result): the copies of the field sit L apart; the area-coverage cell correction leaves
+# each attenuated by about |x|/L near the window, so the fold-in error on a window of
+# extent E falls as (E/L)². L = E (1 + guard) with guard = _GUARD_A / sqrt(accuracy).
+_GUARD_A = 0.08
+_MIN_GUARD = 0.5
+# Largest phase step (radians, along a diagonal) across one sub-cell: the covered part's
+# phase average carries an error growing as the square of the step (measured on a circle
+# at f/8: 1.3e-3 at 0.42 rad, 3.4e-4 at 0.21, 9e-5 at 0.11), so 0.22 rad keeps it a
+# third of a 1e-3 target on a pupil of 230 samples across.
+_STEP_A = 0.22
+_STEP_REF_SAMPLES = 230
+_MIN_PUPIL_SAMPLES = 48
+
+
+class PSFPlan(eqx.Module):
+    """How :func:`evaluate` computes a window (all static; :func:`plan_psf` makes it).
+
+    method: "exact" or "mft". nodes: Gauss–Legendre nodes per pixel a side (1: the pixel
+    centre). period: L, metres in the image plane (mft). pupil_window: samples a side of
+    the frequency grid holding the pupil at the shortest wavelength (mft). subcells:
+    sub-cells a side over which each cell's phase is averaged (mft). use_defocus: whether
+    the defocus phase is computed.
+    """
+
+    method: str = eqx.field(static=True)
+    nodes: int = eqx.field(static=True, default=1)
+    period: float = eqx.field(static=True, default=0.0)
+    pupil_window: int = eqx.field(static=True, default=0)
+    subcells: int = eqx.field(static=True, default=1)
+    use_defocus: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"PSFPlan.method must be one of {METHODS}; got {self.method!r}.")
+        if self.method != "exact" and not (self.period > 0 and self.pupil_window >= 4):
+            raise ValueError(f"PSFPlan: method {self.method!r} needs period > 0 and "
+                             "pupil_window >= 4.")
+
+
+# --- pixel integration --------------------------------------------------------------------
+
+
+@lru_cache(maxsize=None)
+def gauss_legendre(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes in (−½, ½) and weights summing to 1: the mean over one pixel a side."""
+    x, w = np.polynomial.legendre.leggauss(int(m))
+    return 0.5 * x, 0.5 * w
+
+
+def nodes_for(bandwidth_cycles_per_pixel: float, accuracy: float) -> int:
+    """Fewest Gauss–Legendre nodes a side whose error on exp(2πi ν x) over a pixel, for
+    every |ν| up to the intensity's bandwidth (cycles per pixel), is below ``accuracy``/10.
+    The intensity is a superposition of such exponentials (its OTF), so that bounds the
+    error of its pixel integral relative to the OTF's total."""
+    nu = abs(float(bandwidth_cycles_per_pixel))
+    freqs = np.linspace(0.0, nu, 64)
+    for m in range(1, 64):
+        x, w = gauss_legendre(m)
+        err = np.max(np.abs(np.exp(2j * np.pi * freqs[:, None] * x[None, :]) @ w
+                            - np.sinc(freqs)))
+        if err <= accuracy / 10:
+            return m
+    return 64
+
+
+# --- planning -------------------------------------------------------------------------------
+
+
+def _guard(accuracy: float) -> float:
+    return max(_MIN_GUARD, _GUARD_A / math.sqrt(accuracy))
+
+
+def plan_psf(
+    *,
+    pupil_radius: float,
+    wavelengths,
+    z_image: float,
+    defocus: float,
+    pixel_pitch: float,
+    shape: tuple[int, int],
+    sampling: str,
+    accuracy: float,
+    exact_ok: bool,
+    wavefront_slope: float = 0.0,
+    scaling: str = "fresnel",
+    method: str | None = None,
+) -> PSFPlan:
+    """The plan for a window (concrete numbers; see the module's docstring).
+
+    ``exact_ok``: the pupil is a polygon and there is no wavefront error.
+    ``wavefront_slope``: the largest slope |∇OPD| of the wavefront error over the pupil
+    (metres per metre; 0 without one), for the sub-cell rule.
+    """
+    lams = [float(v) for v in np.atleast_1d(np.asarray(wavelengths, float))]
+    lam_min = min(lams)
+    r, z_r, dz, p = float(pupil_radius), float(z_image), float(defocus), float(pixel_pitch)
+    h, w = (int(s) for s in shape)
+    scale_min = float(pupil_scale(lam_min, z_r, dz, scaling))
+    # the intensity's bandwidth, cycles per pixel: 2 r / (λ z) × p
+    nodes = 1 if sampling == "point" else nodes_for(2 * r * p / scale_min, accuracy)
+    # defocus phase at the pupil's edge (radians): model it only where it matters
+    peak = max(abs(defocus_phase_coefficient(lam, z_r, dz, scaling))
+               * (r / float(pupil_scale(lam, z_r, dz, scaling))) ** 2 for lam in lams)
+    use_defocus = peak > 0.1 * accuracy
+    if method is None:
+        method = "exact" if exact_ok and not use_defocus and wavefront_slope == 0 else "mft"
+    if method == "exact":
+        if not exact_ok or use_defocus:
+            raise ValueError(
+                "difstar.psf: method='exact' needs a Polygon or RegularPolygon pupil, no "
+                f"wavefront and no defocus (this one has {peak:.3g} rad at the pupil edge); "
+                "use method='mft' or leave method unset.")
+        return PSFPlan("exact", nodes=nodes)
+    if method not in (None, "mft", "fft"):
+        raise ValueError(f"difstar.psf: method must be one of {METHODS} or None; got {method!r}.")
+    # period: the window, the geometric blur and the guard against the copies
+    extent = max(h, w) * p
+    blur = 2 * r * abs(dz) / abs(z_r - dz) if use_defocus else 0.0
+    period = extent * (1 + _guard(accuracy)) + blur
+    scale_max = max(float(pupil_scale(lam, z_r, dz, scaling)) for lam in lams)
+    # enough samples across the pupil at the longest wavelength (its fewest)
+    period = max(period, _MIN_PUPIL_SAMPLES * scale_max / (2 * r))
+    m = math.ceil(2 * r * period / scale_min) + 4
+    m += m % 2
+    if method is None:
+        method = "fft" if _fft_cost(m, h, w, nodes, period / p) < _mft_cost(m, h, w, nodes) \
+            else "mft"
+    if method == "fft":
+        from ._sampling import fast_length
+
+        period = fast_length(math.ceil(period / p)) * p  # a whole number of pixels
+        m = math.ceil(2 * r * period / scale_min) + 4
+        m += m % 2
+    df = 1.0 / period
+    # phase step across one cell at the pupil's edge: defocus 2 c f_edge df, wavefront
+    # |∇φ| × the cell's size in the pupil (diagonally: √2)
+    step = 0.0
+    for lam in lams:
+        sc = float(pupil_scale(lam, z_r, dz, scaling))
+        c = abs(defocus_phase_coefficient(lam, z_r, dz, scaling)) if use_defocus else 0.0
+        step = max(step, math.sqrt(2) * (2 * c * (r / sc) * df
+                                         + 2 * math.pi / lam * wavefront_slope * sc * df))
+    # the error comes from the edge cells, whose share of the pupil falls as 1/M
+    sub_step = _STEP_A * math.sqrt(accuracy / 1e-3 * m / _STEP_REF_SAMPLES)
+    subcells = max(1, math.ceil(step / sub_step))
+    return PSFPlan(method, nodes=nodes, period=period, pupil_window=m, subcells=subcells,
+                   use_defocus=use_defocus)
+
+
+def _mft_cost(m, h, w, nodes):
+    """Relative cost of the matrix DFT (complex multiply-adds)."""
+    hn, wn = h * nodes, w * nodes
+    return min(m * m * wn + m * wn * hn, m * m * hn + m * hn * wn)
+
+
+def _fft_cost(m, h, w, nodes, n):
+    """Relative cost of the pruned FFTs, in the matrix DFT's units (an FFT's flop runs
+    about 4× slower than a matrix product's on a CPU)."""
+    n = max(float(n), 2.0)
+    return 4 * 0.6 * n * math.log2(n) * (nodes * m + nodes * nodes * w)
+
+
+# --- evaluation -----------------------------------------------------------------------------
+
+
+def _offsets(n: int, nodes: int) -> np.ndarray:
+    """Pixel offsets from the centre pixel (n//2) of every node, (n·nodes,), ascending."""
+    x, _ = gauss_legendre(nodes) if nodes > 1 else (np.zeros(1), np.ones(1))
+    return ((np.arange(n) - n // 2)[:, None] + x[None, :]).ravel()
+
+
+def _integrate(values: Array, shape: tuple[int, int], nodes: int) -> Array:
+    """Weighted mean of each pixel's nodes: (…, H·m, W·m) → (…, H, W)."""
+    if nodes == 1:
+        return values
+    h, w = shape
+    _, wt = gauss_legendre(nodes)
+    wt = jnp.asarray(wt, values.dtype)
+    v = values.reshape(*values.shape[:-2], h, nodes, w, nodes)
+    return jnp.einsum("...aibj,i,j->...ab", v, wt, wt)
+
+
+def exact_window(vertices, wavelength, *, z_image, pixel_pitch, shape, nodes) -> Array:
+    """In-focus polygon: fraction of power per pixel (point or Gauss–Legendre mean × p²).
+
+    Dimensionless: the pupil is scaled by β = 2π p/(λ z_R) and the offsets are in
+    pixels, so |A(k)|²·p²/((λz)² area) = |A_β(offset)|²/(4π² area_β)."""
+    from ._mft import _area, _intensity_plain
+
+    h, w = shape
+    beta = (2 * math.pi * pixel_pitch) / (wavelength * z_image)
+    wv = vertices * beta
+    u = jnp.asarray(_offsets(w, nodes), wv.dtype)
+    t = jnp.asarray(-_offsets(h, nodes), wv.dtype)  # rows run along −y
+    inten = _intensity_plain(wv, u, t)
+    return _integrate(inten, shape, nodes) / (4 * math.pi**2 * _area(wv))
+
+
+def _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan: PSFPlan):
+    """The pupil's cell averages of P e^{iφ} on the plan's M × M frequency window, (M, M)
+    complex, rows along +y, and the pupil's energy Σ|P|² (in cells).
+
+    Each cell is split into s × s sub-cells: coverage × the phase at the sub-cell's centre
+    × the sinc of the defocus phase's gradient over it (the sub-cell's average of a
+    locally linear phase), then averaged. The coverage sums exactly to the cell's."""
+    m, s = plan.pupil_window, plan.subcells
+    df = 1.0 / plan.period
+    scale = pupil_scale(wavelength, z_image, defocus, scaling)
+    f = (np.arange(m * s) - (m * s - 1) / 2) * (df / s)  # sub-cell centres, ascending
+    f = jnp.asarray(f)
+    xs = scale * f
+    cell = scale * (df / s)
+    cov = pupil.tiled_coverage(xs[None, :], xs[:, None], cell)
+    phase_x = jnp.zeros_like(f)
+    gain = jnp.ones_like(f)
+    if plan.use_defocus:
+        c = defocus_phase_coefficient(wavelength, z_image, defocus, scaling)
+        phase_x = c * f * f
+        gain = jnp.sinc(c * f * (df / s) / math.pi)
+    field = cov * (gain[:, None] * gain[None, :])
+    phase = phase_x[:, None] + phase_x[None, :]
+    if wavefront is not None:
+        phase = phase + (2 * math.pi / wavelength) * wavefront.opd(xs[None, :], xs[:, None])
+    amp = field * jnp.exp(1j * phase)
+    if s > 1:
+        amp = amp.reshape(m, s, m, s).mean(axis=(1, 3))
+    energy = jnp.sum(cov) / (s * s)
+    return amp, energy
+
+
+def mft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, shape,
+               scaling, plan: PSFPlan) -> Array:
+    """Fraction of power per pixel by a matrix DFT from the sampled pupil (see module)."""
+    h, w = shape
+    m = plan.pupil_window
+    L = plan.period
+    df = 1.0 / L
+    amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
+    f = jnp.asarray((np.arange(m) - (m - 1) / 2) * df)
+    x = _offsets(w, plan.nodes) * pixel_pitch  # metres
+    y = -_offsets(h, plan.nodes) * pixel_pitch  # rows run along −y
+    ex = jnp.exp(2j * math.pi * f[:, None] * jnp.asarray(x)[None, :])  # (m, W·n)
+    ey = jnp.exp(2j * math.pi * jnp.asarray(y)[:, None] * f[None, :])  # (H·n, m)
+    # smaller intermediate first: (H·n, m) @ (m, m) @ (m, W·n)
+    if h >= w:
+        field = ey @ (amp @ ex)
+    else:
+        field = (ey @ amp) @ ex
+    inten = jnp.real(field) ** 2 + jnp.imag(field) ** 2
+    # the cell correction: the coverage is the pupil convolved with one cell, whose
+    # transform, sinc(x/L) sinc(y/L), divides out exactly from the principal term
+    cx = jnp.asarray(np.sinc(x / L) ** 2)
+    cy = jnp.asarray(np.sinc(y / L) ** 2)
+    inten = inten / (cy[:, None] * cx[None, :])
+    # density |Σ H e|² / (L² energy) per m²; × p² per pixel
+    return _integrate(inten, shape, plan.nodes) * ((pixel_pitch / L) ** 2 / energy)
+
+
+def fft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, shape,
+               scaling, plan: PSFPlan) -> Array:
+    """As :func:`mft_window`, by pruned FFTs of length n = L/p: the field at the pixel
+    centres is the n-point inverse DFT of the pupil window (zero beyond it; frequencies
+    offset by half a sample change the field only by a unimodular factor), along the
+    pupil's rows first, keeping the window's columns, then along those columns, keeping
+    its rows. Sub-pixel nodes shift the output by phase ramps on the pupil."""
+    h, w = shape
+    m = plan.pupil_window
+    L = plan.period
+    n = int(round(L / pixel_pitch))
+    df = 1.0 / L
+    amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
+    f = jnp.asarray((np.arange(m) - (m - 1) / 2) * df)
+    xg, _ = gauss_legendre(plan.nodes) if plan.nodes > 1 else (np.zeros(1), None)
+    ic = (np.arange(w) - w // 2) % n  # column k at x = (k − W//2) p
+    ir = (-(np.arange(h) - h // 2)) % n  # row k at y = −(k − H//2) p
+    rows = []
+    for a in xg:  # row nodes: y offset −a p
+        ramp_y = jnp.exp(2j * math.pi * f * (-a * pixel_pitch))
+        cols = []
+        for b in xg:  # column nodes: x offset b p
+            ramp_x = jnp.exp(2j * math.pi * f * (b * pixel_pitch))
+            g = jnp.fft.ifft(amp * ramp_x[None, :], n=n, axis=1)[:, ic] * n  # (m, W)
+            field_t = jnp.fft.ifft((g * ramp_y[:, None]).T, n=n, axis=1)[:, ir] * n  # (W, H)
+            cols.append(jnp.real(field_t) ** 2 + jnp.imag(field_t) ** 2)
+        rows.append(jnp.stack(cols, axis=-1))  # (W, H, nodes_x)
+    inten = jnp.stack(rows, axis=-1)  # (W, H, nodes_x, nodes_y)
+    x = (np.arange(w) - w // 2)[:, None] * pixel_pitch + xg[None, :] * pixel_pitch  # (W, m)
+    y = -((np.arange(h) - h // 2)[:, None] + xg[None, :]) * pixel_pitch  # (H, m)
+    cx = jnp.asarray(np.sinc(x / L) ** 2)
+    cy = jnp.asarray(np.sinc(y / L) ** 2)
+    inten = inten / (cx[:, None, :, None] * cy[None, :, None, :])
+    if plan.nodes > 1:
+        _, wt = gauss_legendre(plan.nodes)
+        inten = jnp.einsum("whba,b,a->hw", inten, jnp.asarray(wt), jnp.asarray(wt))
+    else:
+        inten = inten[..., 0, 0].T
+    return inten * ((pixel_pitch / L) ** 2 / energy)
+
+
+def evaluate(pupil, wavelength, *, z_image, defocus, pixel_pitch, shape, scaling,
+             wavefront, plan: PSFPlan) -> Float[Array, "h w"]:
+    """One wavelength's window, fraction of power per pixel, by the plan's method."""
+    if plan.method == "exact":
+        return exact_window(pupil.vertices, wavelength, z_image=z_image,
+                            pixel_pitch=pixel_pitch, shape=shape, nodes=plan.nodes)
+    window = fft_window if plan.method == "fft" else mft_window
+    return window(pupil, wavefront, wavelength, z_image=z_image, defocus=defocus,
+                  pixel_pitch=pixel_pitch, shape=shape, scaling=scaling, plan=plan)
