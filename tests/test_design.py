@@ -29,7 +29,8 @@ AREA = math.pi * (F / 16) ** 2  # f/8 open area
 FAM = IrisFamily(9, AREA, segments=8)
 # 3.917 µm pixels need 2x oversampling at f/8, 550 nm (rule 1: p/q <= λN/2 = 2.2 µm)
 SETUP = PSFSetup(wavelength=550e-9, z_focus=F, pixel_pitch=3.917e-6, shape=(32, 32),
-                 oversample=2, defocus=F * 24 * 3.917e-6 / (F / 8), defocus_shape=(32, 32))
+                 defocus=F * 24 * 3.917e-6 / (F / 8), defocus_shape=(32, 32),
+                 max_radius=FAM.radius_bound())
 
 
 def _objective(c, rad):

@@ -37,7 +37,7 @@ import numpy as np
 from ._custom_types import Array, Float
 
 Real = float | int  # beartype does not take an int for a float
-from ._psf import psf
+from ._psf import plan_psf, psf
 from ._pupil import AbstractPupil
 from ._pupil_curved import CurvedIris, curved_iris_from_area
 
@@ -256,9 +256,12 @@ class PSFSetup(eqx.Module):
 
     wavelength: metres. z_focus: exit pupil to the in-focus image, metres (the focal
     length for a lens focused at infinity with pupil magnification 1). pixel_pitch:
-    metres. shape: (H, W) pixels. oversample: sub-samples per pixel (rule 1 of DESIGN.md:
-    pixel_pitch / oversample ≤ λ N / 2). defocus: Δz of the defocused-highlight (bokeh)
-    PSF, metres; defocus_shape: its (H, W) (the geometric blur must fit inside).
+    metres. shape: (H, W) pixels. oversample: no longer used (pixels are integrated
+    exactly). defocus: Δz of the defocused-highlight (bokeh) PSF, metres; defocus_shape:
+    its (H, W) (the geometric blur must fit inside). max_radius: a bound on the design's
+    pupil radius (metres), which plans the PSF for traced pupils (e.g.
+    ``IrisFamily.radius_bound()``). accuracy: the PSF's target (default
+    :data:`difstar.psf`'s).
     All static: they fix shapes or are plain numbers of the study.
     """
 
@@ -269,23 +272,29 @@ class PSFSetup(eqx.Module):
     oversample: int = eqx.field(static=True, default=1)
     defocus: Real = eqx.field(static=True, default=0.0)
     defocus_shape: tuple[int, int] | None = eqx.field(static=True, default=None)
+    max_radius: Real | None = eqx.field(static=True, default=None)
+    accuracy: Real | None = eqx.field(static=True, default=None)
+
+    def _psf(self, pupil, *, z_image, defocus, shape):
+        """:func:`difstar.psf` planned for a pupil up to ``max_radius`` (metres: the
+        design's pupils are traced, so the plan needs a concrete bound on their size)."""
+        kw = dict(wavelength=self.wavelength, z_image=z_image, defocus=defocus,
+                  pixel_pitch=self.pixel_pitch, shape=shape, accuracy=self.accuracy)
+        plan = None
+        if self.max_radius is not None:
+            plan = plan_psf(pupil, max_radius=self.max_radius, **kw)
+        return psf(pupil, plan=plan, **kw)
 
     def focused(self, pupil: AbstractPupil) -> Float[Array, "h w"]:
-        """The in-focus PSF (unit sum)."""
-        return psf(
-            pupil, wavelength=self.wavelength, z_image=self.z_focus, defocus=0.0,
-            pixel_pitch=self.pixel_pitch, shape=self.shape, oversample=self.oversample,
-        )
+        """The in-focus PSF (fraction of the pupil's power per pixel)."""
+        return self._psf(pupil, z_image=self.z_focus, defocus=0.0, shape=self.shape)
 
     def defocused(self, pupil: AbstractPupil) -> Float[Array, "h w"]:
         """The PSF with the sensor ``defocus`` behind the in-focus image (unit sum)."""
         if self.defocus == 0:
             raise ValueError("PSFSetup.defocus is 0; give a defocus (metres) for bokeh.")
-        return psf(
-            pupil, wavelength=self.wavelength, z_image=self.z_focus + self.defocus,
-            defocus=self.defocus, pixel_pitch=self.pixel_pitch,
-            shape=self.defocus_shape or self.shape, oversample=self.oversample,
-        )
+        return self._psf(pupil, z_image=self.z_focus + self.defocus, defocus=self.defocus,
+                         shape=self.defocus_shape or self.shape)
 
     def blur_radius(self, area: Real) -> float:
         """Geometric blur radius (pixels) of a pupil of open ``area`` (m²), taken as the
@@ -319,6 +328,14 @@ class IrisFamily(eqx.Module):
     area: Real = eqx.field(static=True)
     rotation: Real = eqx.field(static=True, default=0.0)
     segments: int = eqx.field(static=True, default=16)
+
+    def radius_bound(self, margin: float = 1.25) -> float:
+        """A bound (metres) on the circumradius of this family's irises: ``margin`` times
+        that of the regular n-gon of the family's area (curvature only shrinks it; the
+        margin covers radial deviations up to 20 %)."""
+        n = self.n
+        r_ngon = math.sqrt(2 * self.area / (n * math.sin(2 * math.pi / n)))
+        return margin * r_ngon
 
     def params(self, curvature=0.0, radial=0.0, angular=0.0) -> IrisParams:
         dt = jnp.result_type(float)

@@ -49,7 +49,7 @@ def study_setup(*, blades: int = 9, f_number: float = 8.0, quick: bool = False):
     setup = PSFSetup(
         wavelength=STUDY_DEFAULTS["wavelength"], z_focus=f, pixel_pitch=p,
         shape=(size, size), oversample=STUDY_DEFAULTS["oversample"], defocus=dz,
-        defocus_shape=(dsize, dsize),
+        defocus_shape=(dsize, dsize), max_radius=IrisFamily(blades, area).radius_bound(),
     )
     family = IrisFamily(blades, area)
     opts = {"core_radius": 4.0, "half_width": math.pi / (4 * blades)}
