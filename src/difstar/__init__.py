@@ -25,7 +25,13 @@ from ._pupil_curved import (
 )
 from ._geometry import Geometry as Geometry, camera_geometry as camera_geometry
 from ._atf import atf as atf
-from ._psf import SamplingError as SamplingError, psf as psf, sampling_report as sampling_report
+from ._psf import (
+    SamplingError as SamplingError,
+    plan_psf as plan_psf,
+    psf as psf,
+    sampling_report as sampling_report,
+)
+from ._psf_engine import PSFPlan as PSFPlan
 from ._otf import mtf as mtf, otf as otf
 from ._image import DiscSource as DiscSource, geometric_image as geometric_image
 from ._sensor import Response as Response, response_curve as response_curve
