@@ -33,7 +33,7 @@ Conventions (the contract of ``difstar.psf``)
 from __future__ import annotations
 
 import math
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import scipy.special
@@ -49,7 +49,7 @@ K_BOLTZMANN = 1.380649e-23  # J/K
 # --- quadrature ----------------------------------------------------------------------------
 
 
-@lru_cache(maxsize=None)
+@cache
 def gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
     """n-point Gauss–Legendre nodes and weights on [−1, 1] (float64)."""
     x, w = np.polynomial.legendre.leggauss(int(n))
@@ -419,7 +419,8 @@ def _fan_rule(vertices, n_s: int, n_t: int):
         e1 = a - c
         e2 = b - a
         jac = abs(e1[0] * e2[1] - e1[1] * e2[0])
-        p = c[None, None, :] + s[:, None, None] * (e1[None, None, :] + t[None, :, None] * e2[None, None, :])
+        edge = e1[None, None, :] + t[None, :, None] * e2[None, None, :]
+        p = c[None, None, :] + s[:, None, None] * edge
         pts.append(p.reshape(-1, 2))
         wts.append((jac * s[:, None] * ws[:, None] * wt[None, :]).ravel())
     return np.concatenate(pts), np.concatenate(wts)
@@ -465,7 +466,8 @@ def polygon_fresnel_intensity(vertices, *, wavelength, z_image, defocus=0.0, pha
         u = np.empty(xf.size, complex)
         step = max(1, 3_000_000 // len(f))
         for i in range(0, xf.size, step):
-            arg = s * (xf[i:i + step, None] * pts[None, :, 0] + yf[i:i + step, None] * pts[None, :, 1])
+            arg = s * (xf[i:i + step, None] * pts[None, :, 0]
+                       + yf[i:i + step, None] * pts[None, :, 1])
             u[i:i + step] = np.exp(1j * arg) @ f
         return (np.abs(u) ** 2 / ((lam * zr) ** 2 * area)).reshape(x.shape)
 

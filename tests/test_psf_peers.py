@@ -62,13 +62,13 @@ from __future__ import annotations
 
 import math
 import warnings
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
+import references as R
 
 import difstar
-import references as R
 
 LAM = 530e-9
 Z = 51.5e-3
@@ -152,7 +152,7 @@ def _defocus_phase_map(x, y):
 # --- each peer's point-sampled PSF (fraction of power per pixel, difstar's orientation) ---
 
 
-@lru_cache(maxsize=None)
+@cache
 def prysm_psf(case):
     from prysm.propagation import focus_fixed_sampling
 
@@ -179,7 +179,7 @@ def prysm_psf(case):
     return inten[:, ::-1]  # y up ([::-1]), then turned by 180° (kernel e^{−2πi…})
 
 
-@lru_cache(maxsize=None)
+@cache
 def hcipy_psf(case):
     g, ap = _hcipy_pupil(case)
     field = ap.astype(complex)
@@ -200,7 +200,7 @@ def hcipy_psf(case):
     return np.asarray(prop(wf).power.shaped)[:, ::-1] * grey
 
 
-@lru_cache(maxsize=None)
+@cache
 def poppy_psf(case):
     import astropy.units as u
 
@@ -243,7 +243,7 @@ PEERS = {"prysm": prysm_psf, "hcipy": hcipy_psf, "poppy": poppy_psf}
 # --- truths ---------------------------------------------------------------------------------
 
 
-@lru_cache(maxsize=None)
+@cache
 def truth(case):
     shape = (N_WIN, N_WIN)
     if case == "circle":
@@ -264,7 +264,7 @@ ABERR_PIXELS = R.sample_pixels((N_WIN, N_WIN), spokes_deg=range(0, 360, 45),
                                radii_px=(2, 5, 9, 15, 25), n_random=10, seed=2, core=1)
 
 
-@lru_cache(maxsize=None)
+@cache
 def aberrated_truth():
     """Point values at ABERR_PIXELS: polar quadrature of the Fresnel integral over the disc
     with the Noll terms written out in references.py (no peer's or difstar's Zernikes)."""
@@ -281,7 +281,7 @@ def _err_vs_truth(img, case):
     return R.rel_rms(img, truth(case))
 
 
-@lru_cache(maxsize=None)
+@cache
 def difstar_psf(case):
     dz = R.defocus_from_waves(W020_WAVES, wavelength=LAM, radius=RAD, z_image=Z) \
         if case == "defocus" else 0.0

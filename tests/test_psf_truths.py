@@ -20,13 +20,13 @@ independent 1-D integral for radial patterns).
 from __future__ import annotations
 
 import math
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
+import references as R
 
 import difstar
-import references as R
 
 LAM = 530e-9
 P = 3.917e-6
@@ -176,7 +176,8 @@ def test_references_agree():
     zs = np.array([R.zernike_noll(j, rr, tt) for j in range(1, 23)])
     gram = np.einsum("aij,bij,ij->ab", zs, zs, wgt)
     assert np.max(np.abs(gram - np.eye(22))) < 1e-12
-    assert np.allclose(R.zernike_noll(7, 0.5, 0.3), math.sqrt(8) * (3 * 0.125 - 1.0) * math.sin(0.3))
+    assert np.allclose(R.zernike_noll(7, 0.5, 0.3),
+                       math.sqrt(8) * (3 * 0.125 - 1.0) * math.sin(0.3))
     # Planck: Wien's displacement law, 5000 K peaks at 579.6 nm
     lg = np.linspace(300e-9, 1000e-9, 70001)
     assert abs(lg[np.argmax(R.planck(lg, 5000.0))] - 2.897771955e-3 / 5000.0) < 2e-11
@@ -187,7 +188,7 @@ def test_references_agree():
 SHAPE_FOCUS = (256, 256)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _focus_truth(sampling: str, rotation: float, shape=SHAPE_FOCUS):
     v = R.regular_polygon_vertices(7, R7, rotation)
     return R.polygon_psf_exact(v, wavelength=LAM, z=Z_FOCUS, pixel_pitch=P, shape=shape,
@@ -248,7 +249,7 @@ DEFOCUS_CASES = [
 ]
 
 
-@lru_cache(maxsize=None)
+@cache
 def _circle_truth(waves, n, pitch, sampling="pixel"):
     phase = R.radial_phase(wavelength=LAM, radius=R8, waves=waves)
     return R.circle_psf(radius=R8, wavelength=LAM, z=Z8, pixel_pitch=pitch, shape=(n, n),
