@@ -78,7 +78,9 @@ def test_circle_in_focus_is_airy():
 
 
 def test_large_defocus_approaches_geometric_disc():
-    # f/2.8-like pupil, Δz = 1 mm: W020 ≈ r²Δz/(2λ z²) ≈ 60 waves; blur radius r Δz / z_i.
+    # f/2.8-like pupil, Δz = 1 mm: W020 = ½(1/z_i − 1/z_R) r²/λ ≈ 30 waves; blur radius
+    # r Δz / z_i. Geometric optics is the limit; diffraction at 30 waves moves the encircled
+    # energies by up to 0.02 (the Hankel integral gives 0.8305 at 0.9 r_geo, against 0.8095).
     lam = 550e-9
     r = F / (2 * 2.8)
     z_r = F
@@ -94,7 +96,7 @@ def test_large_defocus_approaches_geometric_disc():
     for frac in (0.3, 0.5, 0.7, 0.9):
         inside = rad <= frac * r_geo
         expected = inside.sum() * P**2 / (np.pi * r_geo**2)
-        assert got[inside].sum() == pytest.approx(expected, abs=0.02)
+        assert got[inside].sum() == pytest.approx(expected, abs=0.03)
     assert got[rad <= 1.15 * r_geo].sum() > 0.97
 
 
