@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.special
 
 from difstar._zernike import (
     Zernike,
@@ -262,3 +263,88 @@ def test_noll4_equals_fresnel_defocus_phase_up_to_piston(dz):
     assert w020 == pytest.approx(dz / (8 * n_w**2) * Z_R / z_i, rel=1e-12)
     if abs(dz) > 1e-3:  # an error of order Δz/z_R: 8 % at 4.78 mm
         assert abs(dz / (8 * n_w**2) / w020 - 1) > 0.07
+
+
+# --- a radial truth for the engine's aberrated-circle tests --------------------------------
+# (importable: `from test_zernike import hankel_psf, hankel_psf_pixels`)
+
+
+def hankel_psf(r, wavelength, z, radius, opd_of_rho=None, n_nodes=600):
+    """Intensity of a clear circular pupil of ``radius`` with a radially symmetric
+    wavefront W(ρ) = ``opd_of_rho(ρ)`` (metres, ρ = r_pupil/radius), at image radii ``r``
+    (metres) a distance ``z`` from the pupil, as a fraction of the power per unit area:
+
+        I(r) = |2π ∫_0^R e^{i k W(ρ'/R)} J0(2π r ρ' / (λ z)) ρ' dρ'|² / (λ² z² π R²)
+
+    (the Fresnel/Fraunhofer transform of the pupil; ∫ I dA = 1). Gauss–Legendre in ρ'
+    with ``n_nodes`` nodes (exact enough while 2π r R/(λ z) ≪ n_nodes)."""
+    t, w = np.polynomial.legendre.leggauss(n_nodes)
+    rho = 0.5 * (t + 1)
+    w = 0.5 * w
+    phase = np.zeros_like(rho) if opd_of_rho is None else 2 * np.pi / wavelength * opd_of_rho(rho)
+    r = np.asarray(r, dtype=float)
+    arg = 2 * np.pi * radius / (wavelength * z) * r[..., None] * rho
+    amp = 2 * np.pi * radius**2 * np.sum(w * np.exp(1j * phase) * scipy.special.j0(arg) * rho,
+                                         axis=-1)
+    return np.abs(amp) ** 2 / (wavelength**2 * z**2 * np.pi * radius**2)
+
+
+def hankel_psf_pixels(shape, pixel_pitch, wavelength, z, radius, opd_of_rho=None, sub=8,
+                      table_step=1 / 64):
+    """``hankel_psf`` integrated over square pixels of ``pixel_pitch`` on a ``shape`` grid
+    centred like difstar's (centre pixel at index n//2), as a fraction of the power per
+    pixel: a cubic spline of the radial profile (step ``table_step`` pixels) sampled at
+    ``sub`` × ``sub`` Gauss–Legendre points per pixel."""
+    import scipy.interpolate
+
+    h, w = shape
+    r_max = np.hypot(h, w) / 2 + 2
+    r_tab = np.arange(0, r_max + table_step, table_step) * pixel_pitch
+    prof = hankel_psf(r_tab, wavelength, z, radius, opd_of_rho)
+    spline = scipy.interpolate.CubicSpline(r_tab, prof, bc_type=((1, 0.0), (2, 0.0)))
+    t, wt = np.polynomial.legendre.leggauss(sub)
+    offs, ow = 0.5 * t, 0.5 * wt
+    yy = (np.arange(h) - h // 2)[:, None, None, None] + offs[None, None, :, None]
+    xx = (np.arange(w) - w // 2)[None, :, None, None] + offs[None, None, None, :]
+    rr = np.hypot(yy, xx) * pixel_pitch
+    vals = spline(rr)
+    return np.einsum("hwab,a,b->hw", vals, ow, ow) * pixel_pitch**2
+
+
+def test_hankel_truth_airy_strehl_and_energy():
+    lam, n_f, radius = 550e-9, 8.0, 1e-3
+    z = 2 * radius * n_f
+    # no aberration: the Airy pattern, (πR²/(λ²z²)) [2 J1(v)/v]², v = 2π R r/(λ z)
+    r = np.linspace(1e-9, 40 * lam * n_f, 400)
+    v = 2 * np.pi * radius * r / (lam * z)
+    airy = np.pi * radius**2 / (lam * z) ** 2 * (2 * scipy.special.j1(v) / v) ** 2
+    np.testing.assert_allclose(hankel_psf(r, lam, z, radius), airy, rtol=0,
+                               atol=1e-12 * airy.max())
+    # pure Noll 4: on-axis Strehl = sinc²(k W020 / 2) exactly (W020 = 2√3 c4; the piston
+    # and the sign do not matter)
+    peak0 = np.pi * radius**2 / (lam * z) ** 2
+    for waves in (-0.2, 0.1, 0.45):
+        c4 = waves * lam
+        zern = Zernike({4: c4}, radius)
+        w_rho = lambda p, zern=zern: np.asarray(zern.opd(p * radius, 0.0))  # noqa: E731
+        a = 2 * np.pi / lam * 2 * math.sqrt(3) * c4
+        assert hankel_psf(0.0, lam, z, radius, w_rho) / peak0 == pytest.approx(
+            (np.sin(a / 2) / (a / 2)) ** 2, rel=1e-12)
+    # Noll 11 is not symmetric in sign with Noll 4 present: the combined PSF differs
+    both = lambda s: (lambda p: np.asarray(Zernike({4: -0.2 * lam, 11: s * 0.3 * lam},  # noqa: E731
+                                                   radius).opd(p * radius, 0.0)))
+    assert not np.allclose(hankel_psf(r[:50], lam, z, radius, both(1)),
+                           hankel_psf(r[:50], lam, z, radius, both(-1)), rtol=1e-3)
+    # pixel-integrated: the unaberrated window energy equals the Airy encircled energy
+    # 1 − J0²(v) − J1²(v) to the square/disc difference; for a window of half-width 64 px
+    # the square holds slightly more than the inscribed disc and less than the circumscribed
+    pix = lam * n_f / 2  # Nyquist pixels
+    img = hankel_psf_pixels((128, 128), pix, lam, z, radius)
+    ee = lambda rr: 1 - scipy.special.j0(rr) ** 2 - scipy.special.j1(rr) ** 2  # noqa: E731
+    k = 2 * np.pi * radius / (lam * z)
+    assert ee(k * 63.5 * pix) < img.sum() < ee(k * 63.5 * math.sqrt(2) * pix)
+    # the centre pixel against a direct 2-D Gauss–Legendre of the point profile
+    t, wt = np.polynomial.legendre.leggauss(24)
+    yy, xx = np.meshgrid(0.5 * t * pix, 0.5 * t * pix, indexing="ij")
+    direct = np.sum(np.outer(wt, wt) / 4 * hankel_psf(np.hypot(yy, xx), lam, z, radius)) * pix**2
+    assert img[64, 64] == pytest.approx(direct, rel=1e-6)
