@@ -373,8 +373,7 @@ def test_synth_never_deletes_the_manifest(work, capsys):
     refused(["synth", p, "--overwrite"], capsys, work, "input")
     (work / "caps").mkdir()
     write_text(work / "caps" / "notes.txt", "mine")
-    refused(["synth", p, "--out", work / "caps", "--overwrite"], capsys, work,
-            "not made by difstar")
+    refused(["synth", p, "--out", work / "caps", "--overwrite"], capsys, work, "notes.txt")
     # a folder holding the captures synth writes, and another file
     for c in man["captures"]:
         write_text(work / "caps" / c["file"], "old capture")
