@@ -31,6 +31,9 @@ def register(subparsers, name: str) -> None:
     p.add_argument("--cache", default=".bench_cache",
                    help="directory caching the float64 references (default .bench_cache)")
     p.add_argument("--no-prysm", action="store_true", help="skip the prysm comparison")
+    p.add_argument("--psf", action="store_true",
+                   help="instead: the PSF engine's figures (issue 13), by "
+                   "benchmarks/psf_engine.py; needs a clone of the repository")
     p.add_argument("--json", help="also write the full result as JSON to this file (its "
                    "folder must exist; an existing file is replaced)")
     p.set_defaults(func=_cmd_bench)
@@ -40,6 +43,8 @@ def _cmd_bench(a) -> int:
     from . import _bench
     from .io._output import OutputError, write_file_atomic
 
+    if a.psf:
+        return _run_psf_benchmark()
     cache = Path(a.cache)
     if cache.exists() and not cache.is_dir():
         raise OutputError(f"--cache {cache} is a file; give a folder.")
@@ -60,3 +65,18 @@ def _cmd_bench(a) -> int:
         write_file_atomic(a.json, json.dumps(result, indent=1, default=str) + "\n",
                           overwrite=True, what="--json")
     return 0
+
+
+def _run_psf_benchmark() -> int:
+    """benchmarks/psf_engine.py's main, from the repository checkout this package runs from."""
+    import importlib.util
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "psf_engine.py"
+    if not script.is_file():
+        raise SystemExit(
+            f"difstar bench --psf: {script} not found. The PSF engine benchmark runs from a "
+            "clone of the repository (pip install -e . there), not from an installed package.")
+    spec = importlib.util.spec_from_file_location("difstar_bench_psf_engine", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.main([], prog="difstar bench --psf")
