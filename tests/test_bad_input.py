@@ -156,7 +156,12 @@ BAD_SCENE = [
      ["camera/lens/focus_distance", "must be > 0"]),
     # 100000 blades compiled for minutes
     ("100000 blades", lambda d: d["camera"]["lens"]["pupil"].update(n=100000),
-     ["camera/lens/pupil/n", "256"]),
+     ["camera/lens/pupil/n", "<= 64"]),
+    ("1000 vertices", lambda d: d["camera"]["lens"].update(pupil={
+        "type": "polygon", "vertices": [[1e-3 * math.cos(k * math.pi / 500),
+                                         1e-3 * math.sin(k * math.pi / 500)]
+                                        for k in range(1000)]}),
+     ["camera/lens/pupil/vertices", "at most 256"]),
     ("crop 2 2", lambda d: d.update(grid={"crop": [2, 2]}), ["grid/crop/", ">= 8"]),
     ("grid n 4", lambda d: d.update(grid={"n": 4}), ["grid/n"]),
     ("wavelength in nm", lambda d: d["camera"]["sensor"].update(wavelengths=[600, 530, 450]),
@@ -305,6 +310,23 @@ def test_overwrite_replaces_only_what_difstar_made(work, capsys):
     assert code == 0, err
     assert hashlib.sha256(scene.read_bytes()).hexdigest() == digest
     assert sorted(p.name for p in work.iterdir()) == [".out.someone-elses-tmp", "out", "s.json"]
+
+
+def test_failure_while_writing_leaves_nothing(work, capsys, monkeypatch):
+    """An internal failure half-way through writing: exit status 1, the folders it made
+    for --out removed, no temporary folder, the input unchanged."""
+    import difstar.io._output as output
+
+    scene = write_text(work / "s.json", json.dumps(small_doc()))
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("disk on fire")
+
+    monkeypatch.setattr(output, "write_tiff_raw", broken)
+    before = snapshot(work)
+    code, err = run(["predict", scene, "--out", work / "new" / "deeper" / "out"], capsys)
+    assert code == 1 and "internal error" in err and "disk on fire" in err
+    assert snapshot(work) == before
 
 
 # ------------------------------------------------------------------- fit / synth
