@@ -90,10 +90,11 @@ def test_undersampled_grid_override_errors_with_fix():
     lens = difstar.Lens(difstar.RegularPolygon(7, 51.5e-3 / (2 * 1.8)), focal_length=51.5e-3,
                         focus_distance=1.0, principal_separation=-3e-3)
     camera = difstar.Camera(lens, camera.sensor)
-    # λN_w/2 = 0.45 µm × 1.9 / 2 = 0.43 µm at 450 nm, so 3.917 µm pixels need q = 10
-    with pytest.raises(difstar.SamplingError, match=r"rule 1.*oversample >= 10"):
+    # λN_w = 0.45 µm × 1.9 = 0.86 µm at 450 nm: the pupil fits the grid with q = 5
+    with pytest.raises(difstar.SamplingError, match=r"rule 1.*oversample >= 5"):
         difstar.simulate(camera, scene, difstar.Grid(n=64, crop=(32, 32), oversample=1))
-    assert choose_grid(camera, scene, crop=(32, 32)).oversample == 10
+    assert choose_grid(camera, scene, crop=(32, 32), method="fft").oversample == 5
+    assert choose_grid(camera, scene, crop=(32, 32)).oversample == 1  # exact: no grid
 
 
 def test_fast_length():

@@ -26,8 +26,6 @@ from ._otf import otf
 from ._psf import (
     SamplingError,
     _concrete,
-    bin_pixels,
-    block_centring_shift,
     intensity_from_atf,
     sampling_report,
 )
@@ -269,22 +267,38 @@ def _crop(a: Array, crop: tuple[int, int]) -> Array:
 
 
 def channel_psf(pupil, wavelength, geometry: Geometry, *, pixel_pitch: float, grid: Grid):
-    """One channel's PSF on the full n × n grid, pixel-integrated, normalised by the
-    pupil's energy (Parseval) so that its sum over the infinite plane is 1."""
+    """One channel's PSF on the full n × n grid, sampled at the pixel centres: the fraction
+    of the pupil's power per pixel (the intensity at the centre × the pixel's area),
+    normalised by the pupil's energy (Parseval) so that its sum over the infinite plane
+    is 1. The pixels integrate the image once, through the geometric image's area
+    coverage (see :func:`simulate`); the PSF itself is not integrated again."""
     n, q = grid.n, grid.oversample
-    s = block_centring_shift(n, q)
     h_atf, energy = atf(
         pupil, wavelength=wavelength, z_image=geometry.z_exit_pupil,
         defocus=geometry.defocus, dx=pixel_pitch / q, shape=(n * q, n * q),
-        scaling=grid.scaling, use_defocus=grid.use_defocus, shift=(s, s),
+        scaling=grid.scaling, use_defocus=grid.use_defocus,
         cell_average=pupil.area_coverage, window=grid.pupil_window, with_energy=True,
     )
-    out = bin_pixels(intensity_from_atf(h_atf, correct_cell=pupil.area_coverage), q)
-    return out * ((n * q) ** 2 / energy)
+    fine = intensity_from_atf(h_atf, correct_cell=pupil.area_coverage)
+    # fine sample (n q)//2 is the axis (n even) and pixel k's centre is fine sample k q
+    return pixel_centres(fine, n, q) * ((n * q) ** 2 * q * q / energy)
+
+
+def pixel_centres(fine, n: int, q: int):
+    """The samples of a centred (n q)² fine grid at the centres of a centred n² pixel grid."""
+    if q == 1:
+        return fine
+    off = (n * q) // 2 - (n // 2) * q
+    return fine[..., off::q, off::q][..., :n, :n]
 
 
 def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     """Predict the PSFs, the linear image, the RAW mosaic and the sRGB image.
+
+    The sensor integrates the optical image over each pixel exactly once: the geometric
+    image is each source's area coverage of the pixels (the object integrated over each
+    pixel's square), convolved with the PSF sampled at the pixel centres (as
+    ``difstar.psf(..., sampling="point")``: fraction of power per pixel).
 
     Pure and jittable (``jax.jit(simulate)``, with ``grid`` static through equinox's
     filtering, e.g. ``eqx.filter_jit``); differentiable with respect to every array in
@@ -337,7 +351,7 @@ def _exact_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
                         pixel_pitch=camera.sensor.pixel_pitch, shape=(w, w))
     return focused_image(pupil.vertices, b, camera.sensor.wavelengths, z_image=g.z_exit_pupil,
                          pixel_pitch=camera.sensor.pixel_pitch, crop=grid.crop,
-                         oversample=grid.oversample)
+                         oversample=1)  # at the pixel centres (see simulate)
 
 
 def _finish(camera: Camera, scene: Scene, grid: Grid, g: Geometry, psfs, image) -> Prediction:
@@ -383,8 +397,8 @@ def check_sampling(camera: Camera, scene: Scene, grid: Grid) -> None:
                 pixel_pitch=camera.sensor.pixel_pitch, oversample=grid.oversample,
                 n=grid.n * grid.oversample, scaling=grid.scaling,
             )
-            # the exact path has no grid: only pixel integration (rule 1) applies
-            if grid.method == "fft" or m.startswith("rule 1")
+            # the exact path has no grid (the closed form at the pixel centres)
+            if grid.method == "fft"
         ]
     if grid.method == "fft" and grid.pupil_window:
         need = max(pupil_window_for(r, lam, z_r, camera.sensor.pixel_pitch, grid.n)

@@ -24,7 +24,7 @@ import numpy as np
 import jax.numpy as jnp
 
 from ._atf import _atf_on
-from ._psf import bin_pixels, block_centring_shift, cell_sinc
+from ._psf import cell_sinc
 from ._xla import stored
 
 
@@ -36,26 +36,27 @@ def applies(grid) -> bool:
 
 
 def _unshifted(nf: int, start_px: int, count_px: int, q: int) -> np.ndarray:
-    """Unshifted fine-grid indices of pixels [start_px, start_px + count_px) of a centred
-    grid of nf = n·q fine samples (pixel i holds centred fine samples [iq, iq + q))."""
-    jc = np.arange(start_px * q, (start_px + count_px) * q)
+    """Unshifted fine-grid indices of the centres of pixels [start_px, start_px +
+    count_px) of a centred grid of n pixels, nf = n·q fine samples (the axis is fine
+    sample nf//2; pixel i's centre is at offset (i − n//2)·q fine samples from it)."""
+    n = nf // q
+    jc = nf // 2 + (np.arange(start_px, start_px + count_px) - n // 2) * q
     return (jc - nf // 2) % nf
 
 
 def psf_region(pupil, wavelength, geometry, *, pixel_pitch: float, grid, rows: tuple[int, int],
                cols: tuple[int, int]):
-    """One channel's pixel-integrated PSF on pixel offsets ``rows`` = (first, count) and
-    ``cols`` from the centre pixel, normalised by the pupil's energy as on the full path
-    (``_chain.channel_psf``)."""
+    """One channel's PSF at the centres of the pixels at offsets ``rows`` = (first, count)
+    and ``cols`` from the centre pixel, normalised by the pupil's energy as on the full
+    path (``_chain.channel_psf``)."""
     n, q = grid.n, grid.oversample
     nf = n * q
     m = grid.pupil_window if 0 < grid.pupil_window < nf else 0
-    s = block_centring_shift(n, q)
     # the window's ATF, stored apart (see _xla.stored): fused into the zero padding of
     # the first pass, XLA's CPU backend evaluates it several times slower than the FFT
     sub, energy = stored(
         lambda lam: _atf_on(pupil, lam, geometry.z_exit_pupil, geometry.defocus,
-                            pixel_pitch / q, (nf, nf), grid.scaling, grid.use_defocus, (s, s),
+                            pixel_pitch / q, (nf, nf), grid.scaling, grid.use_defocus, (0.0, 0.0),
                             pupil.area_coverage, m),
         wavelength, wavelength)
     ir = _unshifted(nf, n // 2 + rows[0], rows[1], q)
@@ -71,7 +72,7 @@ def psf_region(pupil, wavelength, geometry, *, pixel_pitch: float, grid, rows: t
     if pupil.area_coverage:
         wc = 1.0 / np.fft.ifftshift(cell_sinc(nf)) ** 2  # the cell correction, unshifted
         reg = reg * jnp.asarray(wc[ir], reg.dtype)[:, None] * jnp.asarray(wc[ic], reg.dtype)[None, :]
-    return bin_pixels(reg, q) * (nf**2 / energy)
+    return reg * (nf**2 * q * q / energy)
 
 
 def image(pupil, wavelengths, geometry, bw, *, pixel_pitch: float, grid):

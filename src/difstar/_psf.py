@@ -45,7 +45,9 @@ def sampling_report(
 ) -> list[str]:
     """The DESIGN.md sampling rules that fail, each as a message with the fix (empty = ok).
 
-    Rule 1, intensity bandwidth: grid pitch p/q ≤ λ N_w / 2.
+    Rule 1, pupil in the grid: grid pitch p/q ≤ λ N_w (the ATF's support, the pupil scaled
+    to frequencies, fits in the grid; the PSF is then exact at the grid's samples, and
+    ``simulate`` takes them at the pixel centres).
     Rule 3, defocus phase: phase step between pupil samples < π, i.e. the field N p/q
     exceeds the geometric blur 2 r |Δz| / z_i.
     Rule 4, pupil resolution: at least ``min_pupil_samples`` samples across the pupil.
@@ -61,12 +63,13 @@ def sampling_report(
     dx = p / q
     fails = []
     nw = scale / lam / (2 * r)
-    if dx > lam * nw / 2 * (1 + 1e-12):
-        need = math.ceil(p / (lam * nw / 2))
+    if dx > lam * nw * (1 + 1e-12):
+        need = math.ceil(p / (lam * nw))
         fails.append(
-            f"rule 1 (intensity bandwidth): grid pitch p/q = {dx * 1e6:.4g} µm exceeds "
-            f"λ·N_w/2 = {lam * nw / 2 * 1e6:.4g} µm (λ = {lam * 1e9:.4g} nm, working f-number "
-            f"{nw:.4g}); the PSF would alias. Use oversample >= {need}."
+            f"rule 1 (pupil in the grid): grid pitch p/q = {dx * 1e6:.4g} µm exceeds "
+            f"λ·N_w = {lam * nw * 1e6:.4g} µm (λ = {lam * 1e9:.4g} nm, working f-number "
+            f"{nw:.4g}); the pupil would wrap around the frequency grid. Use oversample >= "
+            f"{need}."
         )
     z_i = z_r - dz
     blur = 2 * r * abs(dz) / z_i

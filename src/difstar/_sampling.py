@@ -87,12 +87,13 @@ def _max_side(budget: int) -> int:
 
 
 def required_oversample(camera: Camera, scene: Scene) -> int:
-    """Rule 1: the smallest q with p/q ≤ λ_min N_w / 2."""
+    """Rule 1: the smallest q with p/q ≤ λ_min N_w (the pupil fits in the frequency
+    grid; the PSF is sampled at the pixel centres, so its own bandwidth sets nothing)."""
     g = geometry_of(camera, scene)
     r = float(camera.lens.pupil.max_radius())
     nw = float(g.z_exit_pupil) / (2 * r)
     lam = float(jnp.min(camera.sensor.wavelengths))
-    return max(1, math.ceil(camera.sensor.pixel_pitch / (lam * nw / 2) - 1e-9))
+    return max(1, math.ceil(camera.sensor.pixel_pitch / (lam * nw) - 1e-9))
 
 
 def scene_extent(camera: Camera, scene: Scene) -> dict:
@@ -178,7 +179,7 @@ def choose_grid(
                 "RegularPolygon pupil; use method='fft'."
             )
         ext = scene_extent(camera, scene)
-        q = required_oversample(camera, scene) if oversample is None else int(oversample)
+        q = 1  # the closed form at the pixel centres: no grid, nothing to oversample
         side = (max(crop) + 2 * math.ceil(ext["object_radius_px"]) + 1) * q
         if _grid_bytes(side) > budget:
             fit = _max_side(budget) // q - 2 * math.ceil(ext["object_radius_px"]) - 1
