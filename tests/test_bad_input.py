@@ -409,6 +409,15 @@ def test_design_arguments(work, capsys):
                         (["--max-curvature", "inf"], "--max-curvature")):
         refused(["design", "--out", work / "o", *args], capsys, work, field)
     refused(["bench", "--repeats", 0], capsys, work, "--repeats")
+    # the same checks in the Python API
+    from difstar._design_cli import iris_study
+    from difstar._validate import InputError
+
+    for kw, field in ((dict(f_number=-1.0), "f_number"), (dict(steps=0), "steps"),
+                      (dict(blades=1000), "blades"), (dict(max_curvature=math.nan),
+                                                      "max_curvature")):
+        with pytest.raises(InputError, match=field):
+            iris_study(quick=True, **kw)
     refused(["bench", "--accuracy", "nan"], capsys, work, "--accuracy")
 
 

@@ -40,7 +40,10 @@ def _log(msg: str) -> None:
 def study_setup(*, blades: int = 9, f_number: float = 8.0, quick: bool = False):
     """(IrisFamily, PSFSetup, measure options) for the worked study."""
     from difstar._design import IrisFamily, PSFSetup
+    from difstar._validate import MAX_BLADES, check_number
 
+    blades = check_number(blades, "blades", integer=True, ge=3, le=MAX_BLADES)
+    f_number = check_number(f_number, "f_number", gt=0, fix="e.g. 8")
     f = STUDY_DEFAULTS["focal_length"]
     area = math.pi * (f / (2 * f_number)) ** 2
     size, blur, dsize = (64, 40, 64) if quick else (96, 80, 128)
@@ -111,8 +114,15 @@ def iris_study(
 
     from difstar._design import bokeh_nonuniformity, design, halo_anisotropy
 
+    from difstar._validate import check_number
+
     family, setup, opts = study_setup(blades=blades, f_number=f_number, quick=quick)
-    steps = (12 if quick else 60) if steps is None else int(steps)
+    steps = (12 if quick else 60) if steps is None else check_number(
+        steps, "steps", integer=True, ge=1)
+    max_curvature = check_number(max_curvature, "max_curvature", gt=0, le=1)
+    vertex_bound = check_number(vertex_bound, "vertex_bound", ge=0, lt=0.5)
+    bokeh_weight = check_number(bokeh_weight, "bokeh_weight", ge=0)
+    learning_rate = check_number(learning_rate, "learning_rate", gt=0)
     rb = setup.blur_radius(family.area)
 
     def objective(p):
