@@ -202,8 +202,8 @@ def plan_psf(
             "plan outside with plan = difstar.plan_psf(pupil, ...) (concrete values, "
             "max_radius= a bound if the pupil's size varies) and pass psf(..., plan=plan).")
     r, lams, z_r, dz, p = vals
+    _check_inputs(pupil, lams=lams, z_r=z_r, p=p, r=float(r), dz=dz)
     r, z_r, dz, p = float(r), float(z_r), float(dz), float(p)
-    _check_positive_finite(lams=lams, z_r=z_r, p=p, r=r, dz=dz)
     slope = _wavefront_slope(wavefront, r)
     if slope is None:
         raise ValueError("difstar.psf: the wavefront is traced; pass plan=difstar.plan_psf(...) "
@@ -227,23 +227,13 @@ def _check_shape(shape) -> tuple[int, int]:
     return h, w
 
 
-def _check_positive_finite(*, lams, z_r, p, r, dz):
-    for name, v, unit in (("wavelength", lams, "metres, e.g. 550e-9"),
-                          ("z_image", z_r, "metres, the exit pupil to sensor distance"),
-                          ("pixel_pitch", p, "metres, e.g. 3.9e-6")):
-        v = np.asarray(v, float)
-        if not np.all(np.isfinite(v)) or not np.all(v > 0):
-            raise ValueError(f"difstar.psf: {name} must be finite and > 0 ({unit}); got {v}.")
-    if not math.isfinite(dz):
-        raise ValueError(f"difstar.psf: defocus must be finite (metres); got {dz}.")
-    if not z_r - dz > 0:
-        raise ValueError(f"difstar.psf: defocus ({dz}) must be smaller than z_image ({z_r}): "
-                         "the in-focus image z_image − defocus must lie behind the pupil.")
+def _check_inputs(pupil, *, lams, z_r, p, r, dz):
+    from ._validate import check_psf_inputs, check_pupil
+
+    check_psf_inputs(wavelength=lams, z_image=z_r, pixel_pitch=p, defocus=dz)
+    check_pupil(pupil)
     if not (math.isfinite(r) and r > 0):
         raise ValueError(f"difstar.psf: the pupil's max_radius must be finite and > 0; got {r}.")
-    if np.any(np.asarray(lams) > 1e-4):
-        raise ValueError(f"difstar.psf: wavelength {np.max(lams)} m is over 100 µm: give it in "
-                         "metres (e.g. 550e-9), not in µm or nm.")
 
 
 #: Largest number of complex samples one window may hold (about 2.4 GB in complex128).
