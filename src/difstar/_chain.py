@@ -29,12 +29,13 @@ from ._psf import (
     intensity_from_atf,
     sampling_report,
 )
+from ._psf_engine import PSFPlan
 from ._pupil import AbstractPupil
 from ._sensor import Response, sensor
 from ._xla import stored
 
 PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
-METHODS = ("fft", "exact")
+METHODS = ("fft", "exact", "engine")
 
 
 class Lens(eqx.Module):
@@ -48,6 +49,8 @@ class Lens(eqx.Module):
         f·m_p in front of the sensor at infinity focus.
     defocus: Δz override (metres). ``None`` derives Δz from the geometry; a value makes
         Δz a parameter of its own (for fitting).
+    wavefront: the lens's wavefront error on the exit pupil, e.g. :class:`difstar.Zernike`
+        (anything with ``opd(x, y)`` in metres); ``None`` for a perfect lens.
     """
 
     pupil: AbstractPupil
@@ -56,6 +59,7 @@ class Lens(eqx.Module):
     principal_separation: Float[Array, ""]
     pupil_magnification: Float[Array, ""]
     defocus: Float[Array, ""] | None
+    wavefront: eqx.Module | None
 
     def __init__(
         self,
@@ -66,6 +70,7 @@ class Lens(eqx.Module):
         principal_separation=0.0,
         pupil_magnification=1.0,
         defocus=None,
+        wavefront=None,
     ):
         if not isinstance(pupil, AbstractPupil):
             raise TypeError(
@@ -78,13 +83,22 @@ class Lens(eqx.Module):
         self.principal_separation = jnp.asarray(principal_separation, dtype=float)
         self.pupil_magnification = jnp.asarray(pupil_magnification, dtype=float)
         self.defocus = None if defocus is None else jnp.asarray(defocus, dtype=float)
+        if wavefront is not None and not callable(getattr(wavefront, "opd", None)):
+            raise TypeError("Lens.wavefront must have an opd(x, y) method (metres), e.g. "
+                            f"difstar.Zernike; got {type(wavefront).__name__}.")
+        self.wavefront = wavefront
 
 
 class Sensor(eqx.Module):
     """Sensor, colour filter and rendering.
 
     pixel_pitch: metres (static). pattern: Bayer layout (static).
-    wavelengths: (3,) metres, one per channel R, G, B (trichromatic model).
+    wavelengths: (3,) metres, one per channel R, G, B (trichromatic model), or (3, K) for
+        the spectral model: K wavelengths per channel with ``spectral_weights``.
+    spectral_weights: (3, K) each channel's weight of each wavelength (the source's
+        spectrum × the channel's sensitivity × the quadrature weight, e.g. from
+        :func:`difstar.choose_wavelengths`); normalised per channel, so φ0 and the
+        response curves keep their per-channel meaning. ``None`` for trichromatic.
     phi0: (3,) reference exposure per channel, seconds.
     response: response-curve parameters. white_balance: (3,) gains R, G, B.
     colour_matrix: (3, 3) camera RGB → linear sRGB.
@@ -92,7 +106,8 @@ class Sensor(eqx.Module):
 
     pixel_pitch: float = eqx.field(static=True)
     pattern: str = eqx.field(static=True)
-    wavelengths: Float[Array, "3"]
+    wavelengths: Float[Array, "3"] | Float[Array, "3 k"]
+    spectral_weights: Float[Array, "3 k"] | None
     phi0: Float[Array, "3"]
     response: Response
     white_balance: Float[Array, "3"]
@@ -108,6 +123,7 @@ class Sensor(eqx.Module):
         response: Response | None = None,
         white_balance=(2.0, 1.0, 2.0),
         colour_matrix=None,
+        spectral_weights=None,
     ):
         if pattern not in PATTERNS:
             raise ValueError(f"Sensor.pattern must be one of {PATTERNS}; got {pattern!r}.")
@@ -117,13 +133,25 @@ class Sensor(eqx.Module):
         self.pixel_pitch = p
         self.pattern = pattern
         self.wavelengths = jnp.asarray(wavelengths, dtype=float)
+        self.spectral_weights = None
+        if self.wavelengths.ndim == 2 or spectral_weights is not None:
+            wts = (jnp.ones_like(self.wavelengths) if spectral_weights is None
+                   else jnp.asarray(spectral_weights, dtype=float))
+            if self.wavelengths.ndim != 2 or self.wavelengths.shape[0] != 3 or \
+                    wts.shape != self.wavelengths.shape:
+                raise ValueError(
+                    "Sensor: spectral mode needs wavelengths of shape (3, K) and "
+                    f"spectral_weights of the same shape; got {self.wavelengths.shape} and "
+                    f"{wts.shape}.")
+            self.spectral_weights = wts / jnp.sum(wts, axis=1, keepdims=True)
         self.phi0 = jnp.asarray(phi0, dtype=float)
         self.response = Response() if response is None else response
         self.white_balance = jnp.asarray(white_balance, dtype=float)
         self.colour_matrix = (
             jnp.eye(3) if colour_matrix is None else jnp.asarray(colour_matrix, dtype=float)
         )
-        for name, v in (("wavelengths", self.wavelengths), ("phi0", self.phi0),
+        for name, v in (("wavelengths", self.wavelengths[:, 0] if self.wavelengths.ndim == 2
+                         else self.wavelengths), ("phi0", self.phi0),
                         ("white_balance", self.white_balance)):
             if v.shape != (3,):
                 raise ValueError(f"Sensor.{name} must have 3 values (R, G, B); got shape {v.shape}.")
@@ -185,10 +213,15 @@ class Grid(eqx.Module):
     method: str = eqx.field(static=True, default="fft")
     source_window: int = eqx.field(static=True, default=0)
     pupil_window: int = eqx.field(static=True, default=0)
+    psf_plan: PSFPlan | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if self.method not in METHODS:
             raise ValueError(f"Grid.method must be one of {METHODS}; got {self.method!r}.")
+        if self.method == "engine" and (self.psf_plan is None or self.source_window < 1
+                                         or self.source_window % 2 == 0):
+            raise ValueError("Grid.method='engine' needs a psf_plan and an odd source_window "
+                             "(difstar.choose_grid sets them).")
         if self.method == "exact" and (self.source_window < 1 or self.source_window % 2 == 0):
             raise ValueError(
                 "Grid.source_window must be an odd number of pixels holding the sources "
@@ -311,6 +344,9 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     if grid.method == "exact":
         psfs, image = _exact_image(camera, scene, grid, g)
         return _finish(camera, scene, grid, g, psfs, image)
+    if grid.method == "engine":
+        psfs, image = _engine_image(camera, scene, grid, g)
+        return _finish(camera, scene, grid, g, psfs, image)
     n = grid.n
     w = grid.source_window
     if 0 < w < n:  # the sources' image on its window
@@ -354,6 +390,43 @@ def _exact_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
                          oversample=1)  # at the pixel centres (see simulate)
 
 
+def engine_psf_shape(crop: tuple[int, int], source_window: int) -> tuple[int, int]:
+    """The PSF offsets a crop needs from a centred source window: (h + s − 1, w + s − 1)."""
+    return crop[0] + source_window - 1, crop[1] + source_window - 1
+
+
+def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
+    """Linear image and PSFs through :func:`difstar.psf`'s engine: each channel's PSF at
+    the pixel centres on exactly the offsets the crop needs (nothing folded in), weighted
+    over the channel's wavelengths in the spectral model, with the lens's wavefront, and
+    convolved linearly with the sources' window."""
+    from ._mft import _conv_offsets, window_rfft2
+    from ._psf import psf
+    from ._sampling import fast_length
+
+    sen = camera.sensor
+    w = grid.source_window
+    h, wc = grid.crop
+    kh, kw = engine_psf_shape(grid.crop, w)
+    b = geometric_image(scene.sources, magnification=g.magnification,
+                        pixel_pitch=sen.pixel_pitch, shape=(w, w))
+    nh, nw = fast_length(kh + w - 1), fast_length(kw + w - 1)
+    _, _, r0, c0 = _conv_offsets(grid.crop, (w, w))
+    b_ft = window_rfft2(b, (nh, nw))
+    psfs, imgs = [], []
+    for c in range(3):
+        lam = sen.wavelengths[c]
+        wts = None if sen.spectral_weights is None else sen.spectral_weights[c]
+        p = psf(camera.lens.pupil, wavelength=lam, weights=wts, z_image=g.z_exit_pupil,
+                defocus=g.defocus, pixel_pitch=sen.pixel_pitch, shape=(kh, kw),
+                wavefront=camera.lens.wavefront, scaling=grid.scaling, plan=grid.psf_plan)
+        full = jnp.fft.irfft2(jnp.fft.rfft2(p, s=(nh, nw)) * b_ft[c], s=(nh, nw))
+        imgs.append(full[r0 : r0 + h, c0 : c0 + wc])
+        i0, j0 = kh // 2 - h // 2, kw // 2 - wc // 2
+        psfs.append(p[i0 : i0 + h, j0 : j0 + wc])
+    return jnp.stack(psfs), jnp.stack(imgs)
+
+
 def _finish(camera: Camera, scene: Scene, grid: Grid, g: Geometry, psfs, image) -> Prediction:
     sen = camera.sensor
     image = image + scene.background[:, None, None]
@@ -384,7 +457,7 @@ def check_sampling(camera: Camera, scene: Scene, grid: Grid) -> None:
     )
     g = geometry_of(camera, scene)
     vals = [_concrete(v) for v in (lens.pupil.max_radius(), g.z_exit_pupil, g.defocus)]
-    lams = [_concrete(v) for v in np.atleast_1d(camera.sensor.wavelengths)]
+    lams = [_concrete(v) for v in np.ravel(camera.sensor.wavelengths)]
     if any(v is None for v in vals + lams):
         return
     r, z_r, dz = vals

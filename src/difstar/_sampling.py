@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 import jax.numpy as jnp
+import numpy as np
 
 from ._chain import (
     Camera,
@@ -119,6 +120,25 @@ def padding_for_accuracy(accuracy: float | None) -> float:
     return max(_MIN_PADDING, (_CAL_A / acc) ** (1.0 / _CAL_ALPHA))
 
 
+def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scaling) -> Grid:
+    """The grid of ``method="engine"``: the PSF through :func:`difstar.psf`'s engine on the
+    offsets the crop needs, planned here (outside jit) for every channel's wavelengths."""
+    from ._chain import engine_psf_shape
+    from ._psf import plan_psf
+
+    g = geometry_of(camera, scene)
+    ext = scene_extent(camera, scene)
+    window = source_window_for(ext["object_radius_px"])
+    shape = engine_psf_shape(tuple(crop), window)
+    plan = plan_psf(camera.lens.pupil, wavelength=np.ravel(np.asarray(camera.sensor.wavelengths)),
+                    z_image=float(g.z_exit_pupil), defocus=float(g.defocus),
+                    pixel_pitch=camera.sensor.pixel_pitch, shape=shape, sampling="point",
+                    accuracy=accuracy, wavefront=camera.lens.wavefront, scaling=scaling)
+    return Grid(n=max(shape), crop=tuple(int(c) for c in crop), use_defocus=plan.use_defocus,
+                raw_only=raw_only, scaling=scaling, method="engine", source_window=window,
+                psf_plan=plan)
+
+
 def choose_grid(
     camera: Camera,
     scene: Scene,
@@ -169,9 +189,24 @@ def choose_grid(
         )
 
     in_focus = not needs_defocus(camera, scene)
-    exact_ok = in_focus and isinstance(camera.lens.pupil, (Polygon, RegularPolygon))
+    spectral = camera.sensor.spectral_weights is not None
+    aberrated = camera.lens.wavefront is not None
+    exact_ok = (in_focus and isinstance(camera.lens.pupil, (Polygon, RegularPolygon))
+                and not spectral and not aberrated)
     if method is None:
-        method = "exact" if exact_ok and n is None and padding is None and accuracy is None else "fft"
+        if spectral or aberrated:
+            method = "engine"
+        else:
+            method = ("exact" if exact_ok and n is None and padding is None and accuracy is None
+                      else "fft")
+    if method == "engine":
+        return _engine_grid(camera, scene, crop, accuracy=accuracy, raw_only=raw_only,
+                            scaling=scaling)
+    if spectral or aberrated:
+        raise ValueError(
+            f"choose_grid: method={method!r} models one wavelength per channel and no wavefront "
+            "error; this camera has a spectral sensor or a lens wavefront: use method='engine' "
+            "(the default for it).")
     if method == "exact":
         if not exact_ok:
             raise ValueError(
