@@ -97,7 +97,8 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
         roi = tuple(c.get("roi_size", default_roi))
         caps.append(CaptureEntry(
             name=name, path=(path.parent / c["file"]), configuration=c["configuration"],
-            exposure_time=c.get("exposure_time"),
+            exposure_time=(None if c.get("exposure_time") is None
+                           else float(c["exposure_time"])),
             source_position=(float(c["source_position"][0]), float(c["source_position"][1])),
             roi_size=(int(roi[0]), int(roi[1])),
         ))
