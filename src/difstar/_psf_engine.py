@@ -157,8 +157,8 @@ def plan_psf(
     peak = max(abs(defocus_phase_coefficient(lam, z_r, dz, scaling))
                * (r / float(pupil_scale(lam, z_r, dz, scaling))) ** 2 for lam in lams)
     use_defocus = peak > 0.1 * accuracy
-    if method is None:
-        method = "exact" if exact_ok and not use_defocus and wavefront_slope == 0 else "mft"
+    if method is None and exact_ok and not use_defocus and wavefront_slope == 0:
+        method = "exact"
     if method == "exact":
         if not exact_ok or use_defocus:
             raise ValueError(
