@@ -218,3 +218,20 @@ def test_atf_drops_phase_statically_at_zero_defocus():
     a = atf(pup, defocus=0.0, use_defocus=False, **kw)
     b = atf(pup, defocus=0.0, use_defocus=True, **kw)
     np.testing.assert_allclose(a, b, atol=1e-15)
+
+
+@pytest.mark.parametrize("method", ["fft", "mft"])
+def test_undersampled_pixels_both_transforms_match_hankel(method):
+    # f/2.8 with 3.917 µm pixels: the pupil spans more frequencies than one pixel pitch
+    # resolves (λN = 1.5 µm < p), so the pruned FFTs must fold the pupil onto their
+    # range (aliased frequencies coincide at the pixel centres) instead of cutting it
+    import references as R
+
+    lam, r, n = 530e-9, F / 5.6, 48
+    dz = R.defocus_from_waves(2.0, wavelength=lam, radius=r, z_image=F)
+    got = np.asarray(difstar.psf(difstar.Circle(r), wavelength=lam, z_image=F, defocus=dz,
+                                 pixel_pitch=P, shape=(n, n), sampling="point", method=method))
+    ref = R.circle_psf(radius=r, wavelength=lam, z=F, pixel_pitch=P, shape=(n, n),
+                       sampling="point",
+                       phase=R.radial_phase(wavelength=lam, radius=r, waves=2.0))
+    assert _rel_rms(got, ref) < 1e-3

@@ -5,96 +5,196 @@ demosaic → colour, composed by :func:`simulate`. Fitting and design call ``sim
 The command line and file I/O live in ``difstar.io`` and ``difstar.cli``.
 """
 
+from ._atf import atf as atf
+from ._cfa import bayer_masks as bayer_masks
+from ._cfa import mosaic as mosaic
+from ._cfa import white_balance as white_balance
+from ._chain import (
+    Camera as Camera,
+)
+from ._chain import (
+    Grid as Grid,
+)
+from ._chain import (
+    Lens as Lens,
+)
+from ._chain import (
+    Prediction as Prediction,
+)
+from ._chain import (
+    Scene as Scene,
+)
+from ._chain import (
+    Sensor as Sensor,
+)
+from ._chain import (
+    check_sampling as check_sampling,
+)
+from ._chain import (
+    geometry_of as geometry_of,
+)
+from ._chain import (
+    needs_defocus as needs_defocus,
+)
+from ._chain import (
+    simulate as simulate,
+)
+from ._colour import (
+    camera_to_srgb as camera_to_srgb,
+)
+from ._colour import (
+    render_srgb as render_srgb,
+)
+from ._colour import (
+    srgb_encode as srgb_encode,
+)
+from ._demosaic import (
+    demosaic as demosaic,
+)
+from ._demosaic import (
+    demosaic_bilinear as demosaic_bilinear,
+)
+from ._demosaic import (
+    demosaic_malvar2004 as demosaic_malvar2004,
+)
+from ._design import (
+    Box as Box,
+)
+from ._design import (
+    DesignResult as DesignResult,
+)
+from ._design import (
+    IrisFamily as IrisFamily,
+)
+from ._design import (
+    IrisParams as IrisParams,
+)
+from ._design import (
+    PSFSetup as PSFSetup,
+)
+from ._design import (
+    bokeh_nonuniformity as bokeh_nonuniformity,
+)
+from ._design import (
+    core_energy as core_energy,
+)
+from ._design import (
+    design as design,
+)
+from ._design import (
+    halo_anisotropy as halo_anisotropy,
+)
+from ._design import (
+    image_mismatch as image_mismatch,
+)
+from ._design import (
+    spike_energy as spike_energy,
+)
+from ._examples import paper_camera as paper_camera
+from ._examples import paper_grid as paper_grid
+from ._geometry import Geometry as Geometry
+from ._geometry import camera_geometry as camera_geometry
+from ._image import DiscSource as DiscSource
+from ._image import geometric_image as geometric_image
+from ._metrics import (
+    grayscale as grayscale,
+)
+from ._metrics import (
+    mse as mse,
+)
+from ._metrics import (
+    profile_circle as profile_circle,
+)
+from ._metrics import (
+    profile_line as profile_line,
+)
+from ._metrics import (
+    ssim as ssim,
+)
+from ._metrics import (
+    table1 as table1,
+)
+from ._otf import mtf as mtf
+from ._otf import otf as otf
+from ._psf import plan_psf as plan_psf
+from ._psf import psf as psf
+from ._psf_engine import PSFPlan as PSFPlan
+from ._psf_engine import SamplingError as SamplingError
 from ._pupil import (
     AbstractPupil as AbstractPupil,
+)
+from ._pupil import (
     Circle as Circle,
+)
+from ._pupil import (
     Mask as Mask,
+)
+from ._pupil import (
     Obstructed as Obstructed,
+)
+from ._pupil import (
     Polygon as Polygon,
+)
+from ._pupil import (
     RegularPolygon as RegularPolygon,
+)
+from ._pupil import (
     Spiders as Spiders,
+)
+from ._pupil import (
     Struts as Struts,
+)
+from ._pupil import (
     Transformed as Transformed,
+)
+from ._pupil import (
     Union as Union,
+)
+from ._pupil import (
     hex_segment_centres as hex_segment_centres,
+)
+from ._pupil import (
     hex_segments as hex_segments,
 )
 from ._pupil_curved import (
     CurvedIris as CurvedIris,
+)
+from ._pupil_curved import (
     curved_iris_from_area as curved_iris_from_area,
 )
-from ._geometry import Geometry as Geometry, camera_geometry as camera_geometry
-from ._atf import atf as atf
-from ._psf import (
-    SamplingError as SamplingError,
-    plan_psf as plan_psf,
-    psf as psf,
-    sampling_report as sampling_report,
-)
-from ._psf_engine import PSFPlan as PSFPlan
-from ._otf import mtf as mtf, otf as otf
-from ._image import DiscSource as DiscSource, geometric_image as geometric_image
-from ._sensor import Response as Response, response_curve as response_curve
-from ._cfa import bayer_masks as bayer_masks, mosaic as mosaic, white_balance as white_balance
-from ._demosaic import (
-    demosaic as demosaic,
-    demosaic_bilinear as demosaic_bilinear,
-    demosaic_malvar2004 as demosaic_malvar2004,
-)
-from ._colour import (
-    camera_to_srgb as camera_to_srgb,
-    render_srgb as render_srgb,
-    srgb_encode as srgb_encode,
-)
-from ._metrics import (
-    grayscale as grayscale,
-    mse as mse,
-    profile_circle as profile_circle,
-    profile_line as profile_line,
-    ssim as ssim,
-    table1 as table1,
-)
-from ._chain import (
-    Camera as Camera,
-    Grid as Grid,
-    Lens as Lens,
-    Prediction as Prediction,
-    Scene as Scene,
-    Sensor as Sensor,
-    check_sampling as check_sampling,
-    geometry_of as geometry_of,
-    needs_defocus as needs_defocus,
-    simulate as simulate,
-)
-from ._examples import paper_camera as paper_camera, paper_grid as paper_grid
-from ._zernike import (
-    Zernike as Zernike,
-    defocus_to_noll4 as defocus_to_noll4,
-    noll4_to_defocus as noll4_to_defocus,
-    noll_to_nm as noll_to_nm,
-)
+from ._sampling import choose_grid as choose_grid
+from ._sampling_rules import sampling_report as sampling_report
+from ._sensor import Response as Response
+from ._sensor import response_curve as response_curve
 from ._spectrum import (
     blackbody as blackbody,
+)
+from ._spectrum import (
     channel_weights as channel_weights,
+)
+from ._spectrum import (
     choose_wavelengths as choose_wavelengths,
+)
+from ._spectrum import (
     error_table as error_table,
+)
+from ._spectrum import (
     illuminant as illuminant,
+)
+from ._spectrum import (
     user_spectrum as user_spectrum,
 )
-from ._sampling import choose_grid as choose_grid
-
-from ._design import (
-    Box as Box,
-    DesignResult as DesignResult,
-    IrisFamily as IrisFamily,
-    IrisParams as IrisParams,
-    PSFSetup as PSFSetup,
-    bokeh_nonuniformity as bokeh_nonuniformity,
-    core_energy as core_energy,
-    design as design,
-    halo_anisotropy as halo_anisotropy,
-    image_mismatch as image_mismatch,
-    spike_energy as spike_energy,
+from ._zernike import (
+    Zernike as Zernike,
+)
+from ._zernike import (
+    defocus_to_noll4 as defocus_to_noll4,
+)
+from ._zernike import (
+    noll4_to_defocus as noll4_to_defocus,
+)
+from ._zernike import (
+    noll_to_nm as noll_to_nm,
 )
 
 __version__ = "0.1.0"

@@ -17,7 +17,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from ._custom_types import Array, Complex, Float
+from ._custom_types import Array, Float
 from ._pupil import AbstractPupil
 
 SCALINGS = ("fresnel", "paper")

@@ -29,7 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._custom_types import Array, Float
-from ._psf import bin_pixels
+from ._fft_size import fast_length
+from ._grid_psf import bin_pixels
 from ._xla import stored
 
 _SMALL = 2e-2  # |k·d| (k·t L) below which an edge's term uses its series form
@@ -320,7 +321,6 @@ def conv_size(crop: tuple[int, int], window: tuple[int, int]):
     outside the crop whenever r0 ≥ hb − 1 and r0 + h ≤ kh ("clean": even crops with odd
     windows), so n = kh suffices. Otherwise the PSF is zero-padded and the convolution
     made linear: n ≥ kh + hb − 1."""
-    from ._sampling import fast_length
 
     (h, w), (hb, wb) = crop, window
     kh, kw, r0, c0 = _conv_offsets(crop, window)
@@ -339,7 +339,7 @@ def window_rfft2(b, shape: tuple[int, int]):
 def focused_image(
     vertices: Float[Array, "n 2"],
     b: Float[Array, "3 hb wb"],
-    wavelengths: Float[Array, "3"],
+    wavelengths: Float[Array, 3],
     *,
     z_image,
     pixel_pitch: float,

@@ -20,11 +20,12 @@ most of that work multiplies zeros or computes pixels nobody looks at:
 
 from __future__ import annotations
 
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 
 from ._atf import _atf_on
-from ._psf import cell_sinc
+from ._fft_size import fast_length
+from ._grid_psf import cell_sinc
 from ._xla import stored
 
 
@@ -78,7 +79,6 @@ def psf_region(pupil, wavelength, geometry, *, pixel_pitch: float, grid, rows: t
 def image(pupil, wavelengths, geometry, bw, *, pixel_pitch: float, grid):
     """(psfs on the crop, linear image on the crop), both (3, h, w), from the sources'
     geometric image ``bw`` (3, s, s) on the centred source window."""
-    from ._sampling import fast_length
 
     h, w = grid.crop
     s = bw.shape[-1]

@@ -1,8 +1,5 @@
 """The public PSF: :func:`psf` (fraction of power per pixel on a window, by the engine
-of :mod:`._psf_engine`) and :func:`plan_psf`; and the FFT helpers the chain's grid path
-shares (intensity from an ATF, the cell correction, pixel binning, the sampling rules of
-the n × n grid).
-"""
+of :mod:`._psf_engine`) and :func:`plan_psf` (its plan, made outside jit)."""
 
 from __future__ import annotations
 
@@ -12,124 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._atf import SCALINGS, atf, pupil_scale
+from ._atf import SCALINGS
 from ._custom_types import Array, Float
-from ._pupil import AbstractPupil
-from ._psf_engine import DEFAULT_ACCURACY, SAMPLINGS, PSFPlan, evaluate
+from ._psf_engine import DEFAULT_ACCURACY, SAMPLINGS, PSFPlan, SamplingError, evaluate
 from ._psf_engine import plan_psf as plan_window
-
-
-class SamplingError(ValueError):
-    """The requested grid cannot represent the PSF; the message names the rule and a fix."""
-
-
-def _concrete(x):
-    """A Python float of ``x``, or None when ``x`` is a tracer (inside jit/grad)."""
-    try:
-        return float(np.asarray(x))
-    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError, TypeError):
-        return None
-
-
-def sampling_report(
-    *,
-    pupil_radius,
-    wavelength,
-    z_image,
-    defocus,
-    pixel_pitch,
-    oversample: int,
-    n: int,
-    scaling: str = "fresnel",
-    min_pupil_samples: float = 16.0,
-) -> list[str]:
-    """The DESIGN.md sampling rules that fail, each as a message with the fix (empty = ok).
-
-    Rule 1, pupil in the grid: grid pitch p/q ≤ λ N_w (the ATF's support, the pupil scaled
-    to frequencies, fits in the grid; the PSF is then exact at the grid's samples, and
-    ``simulate`` takes them at the pixel centres).
-    Rule 3, defocus phase: phase step between pupil samples < π, i.e. the field N p/q
-    exceeds the geometric blur 2 r |Δz| / z_i.
-    Rule 4, pupil resolution: at least ``min_pupil_samples`` samples across the pupil.
-    (Rule 2, the field holding the scene, is checked by the grid chooser.)
-    """
-    r = float(pupil_radius)
-    lam = float(wavelength)
-    z_r = float(z_image)
-    dz = float(defocus)
-    p = float(pixel_pitch)
-    q = int(oversample)
-    scale = float(pupil_scale(lam, z_r, dz, scaling))
-    dx = p / q
-    fails = []
-    nw = scale / lam / (2 * r)
-    if dx > lam * nw * (1 + 1e-12):
-        need = math.ceil(p / (lam * nw))
-        fails.append(
-            f"rule 1 (pupil in the grid): grid pitch p/q = {dx * 1e6:.4g} µm exceeds "
-            f"λ·N_w = {lam * nw * 1e6:.4g} µm (λ = {lam * 1e9:.4g} nm, working f-number "
-            f"{nw:.4g}); the pupil would wrap around the frequency grid. Use oversample >= "
-            f"{need}."
-        )
-    z_i = z_r - dz
-    blur = 2 * r * abs(dz) / z_i
-    field = n * dx
-    if blur >= field:
-        need_n = math.ceil(blur / dx) + 1
-        fails.append(
-            f"rule 3 (defocus phase): the geometric blur {blur * 1e3:.4g} mm does not fit in "
-            f"the grid's field {field * 1e3:.4g} mm, so the defocus phase steps by more than π "
-            f"between pupil samples. Use a grid of at least {need_n} samples a side "
-            f"(shape x oversample)."
-        )
-    samples = 2 * r * field / scale
-    if samples < min_pupil_samples:
-        need_n = math.ceil(min_pupil_samples * scale / (2 * r * dx))
-        fails.append(
-            f"rule 4 (pupil resolution): only {samples:.3g} samples across the pupil "
-            f"(minimum {min_pupil_samples:g}). Use a grid of at least {need_n} samples a side."
-        )
-    return fails
-
-
-def bin_pixels(fine: Float[Array, "*b hq wq"], q: int) -> Float[Array, "*b h w"]:
-    """Integrate (sum) q × q blocks: the box of one pixel pitch."""
-    if q == 1:
-        return fine
-    *lead, hq, wq = fine.shape
-    return fine.reshape(*lead, hq // q, q, wq // q, q).sum(axis=(-3, -1))
-
-
-def block_centring_shift(n: int, q: int) -> float:
-    """Fine-grid shift that puts the PSF's centre at the centre of pixel n // 2's block."""
-    return (n // 2) * q + (q - 1) / 2 - (n * q) // 2
-
-
-def cell_correction(shape: tuple[int, int]) -> Array:
-    """sinc(j/N) sinc(k/M) on the centred image grid.
-
-    Area coverage samples the pupil convolved with one square frequency cell, so the
-    computed amplitude is the true one times this sinc (the cell's transform, in grid
-    units). Dividing by it restores the principal term exactly and leaves the aliases
-    from beyond the field attenuated by ~|u|/(m L) near the centre, which is what makes
-    the FFT PSF converge faster than the 1/N of a binary raster (BENCHMARKS.md).
-    """
-    h, w = shape
-    return jnp.asarray(cell_sinc(h))[:, None] * jnp.asarray(cell_sinc(w))[None, :]
-
-
-def cell_sinc(n: int) -> np.ndarray:
-    """sinc(j/n) on a centred axis of n samples (the 1-D factor of ``cell_correction``)."""
-    return np.sinc((np.arange(n) - n // 2) / n)
-
-
-def intensity_from_atf(h_atf, *, correct_cell: bool = True) -> Array:
-    """|IFFT(ATF)|² for a centred ATF, centred, unnormalised."""
-    field = jnp.fft.fftshift(jnp.fft.ifft2(jnp.fft.ifftshift(h_atf)))
-    intensity = jnp.real(field) ** 2 + jnp.imag(field) ** 2
-    if correct_cell:
-        intensity = intensity / cell_correction(h_atf.shape) ** 2
-    return intensity
+from ._pupil import AbstractPupil
 
 
 def _concrete_all(*xs):

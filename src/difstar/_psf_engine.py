@@ -36,15 +36,19 @@ The field is U(x) ∝ ∫ P(ξ) e^{i k W(ξ)} e^{+2πi x·ξ/(λ z_R)} dξ with 
 from __future__ import annotations
 
 import math
-from functools import lru_cache
+from functools import cache
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._atf import defocus_phase_coefficient, pupil_scale
 from ._custom_types import Array, Float
+
+
+class SamplingError(ValueError):
+    """The requested grid cannot represent the PSF; the message names the rule and a fix."""
+
 
 #: Default accuracy target of :func:`difstar.psf`: relative RMS error over the window.
 DEFAULT_ACCURACY = 1e-3
@@ -95,7 +99,7 @@ class PSFPlan(eqx.Module):
 # --- pixel integration --------------------------------------------------------------------
 
 
-@lru_cache(maxsize=None)
+@cache
 def gauss_legendre(m: int) -> tuple[np.ndarray, np.ndarray]:
     """Nodes in (−½, ½) and weights summing to 1: the mean over one pixel a side."""
     x, w = np.polynomial.legendre.leggauss(int(m))
@@ -181,7 +185,7 @@ def plan_psf(
         method = "fft" if _fft_cost(m, h, w, nodes, period / p) < _mft_cost(m, h, w, nodes) \
             else "mft"
     if method == "fft":
-        from ._sampling import fast_length
+        from ._fft_size import fast_length
 
         period = fast_length(math.ceil(period / p)) * p  # a whole number of pixels
         m = math.ceil(2 * r * period / scale_min) + 4
@@ -311,6 +315,18 @@ def mft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, s
     return _integrate(inten, shape, plan.nodes) * ((pixel_pitch / L) ** 2 / energy)
 
 
+def _fold(a: Array, n: int) -> Array:
+    """``a`` (…, m) folded onto n samples along its last axis: at the pixel centres
+    (x = k p) frequencies n/L = 1/p apart are the same, so a pupil wider than the DFT's
+    frequency range adds onto it instead of being cut off (undersampled pixels)."""
+    m = a.shape[-1]
+    if m <= n:
+        return a
+    k = -(-m // n)
+    a = jnp.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, k * n - m)])
+    return a.reshape(*a.shape[:-1], k, n).sum(axis=-2)
+
+
 def fft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, shape,
                scaling, plan: PSFPlan) -> Array:
     """As :func:`mft_window`, by pruned FFTs of length n = L/p: the field at the pixel
@@ -334,8 +350,8 @@ def fft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, s
         cols = []
         for b in xg:  # column nodes: x offset b p
             ramp_x = jnp.exp(2j * math.pi * f * (b * pixel_pitch))
-            g = jnp.fft.ifft(amp * ramp_x[None, :], n=n, axis=1)[:, ic] * n  # (m, W)
-            field_t = jnp.fft.ifft((g * ramp_y[:, None]).T, n=n, axis=1)[:, ir] * n  # (W, H)
+            g = jnp.fft.ifft(_fold(amp * ramp_x[None, :], n), n=n, axis=1)[:, ic] * n  # (m, W)
+            field_t = jnp.fft.ifft(_fold((g * ramp_y[:, None]).T, n), n=n, axis=1)[:, ir] * n
             cols.append(jnp.real(field_t) ** 2 + jnp.imag(field_t) ** 2)
         rows.append(jnp.stack(cols, axis=-1))  # (W, H, nodes_x)
     inten = jnp.stack(rows, axis=-1)  # (W, H, nodes_x, nodes_y)

@@ -13,19 +13,16 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ._chain import (
-    Camera,
-    Grid,
-    Scene,
+from ._fft_size import fast_length as fast_length
+from ._model import Camera, Grid, Scene, geometry_of
+from ._psf_engine import SamplingError
+from ._sampling_rules import (
     check_sampling,
-    geometry_of,
+    engine_psf_shape,
     needs_defocus,
     pupil_window_for,
     source_window_for,
 )
-from ._psf import SamplingError
-
-_FAST_RADICES = (2, 3, 5, 7)
 
 #: Accuracy target used when neither ``accuracy`` nor ``padding`` is given: relative RMS
 #: error of the linear image outside the source's core (DESIGN.md, "Measuring error").
@@ -44,34 +41,6 @@ _CAL_ALPHA = 1.0
 _MIN_PADDING = 0.05
 
 
-def fast_length(n: int) -> int:
-    """Smallest m ≥ n whose prime factors are all in {2, 3, 5, 7} (fast FFT sizes).
-
-    Enumerates the 7-smooth candidates (O(log³ n) steps, never a scan), so it returns at
-    once for any size; sizes beyond 2⁶² raise ValueError."""
-    n = max(int(n), 1)
-    if n > 2**62:
-        raise ValueError(f"fast_length: n = {n} is beyond any grid that could be allocated.")
-    best = 1 << (n - 1).bit_length()  # the power of two ≥ n
-    p7 = 1
-    while p7 < best:
-        p5 = p7
-        while p5 < best:
-            p3 = p5
-            while p3 < best:
-                m = p3
-                if m < n:  # the smallest m · 2^k ≥ n
-                    m <<= (-(-n // m) - 1).bit_length()
-                best = min(best, m)
-                p3 *= 3
-            p5 *= 5
-        p7 *= 7
-    return best
-
-
-#: complex (side × side) arrays certainly held at once: a lower bound on the memory a
-#: grid needs (the pruned paths hold little more), used to refuse, before anything is
-#: allocated, a grid that cannot fit
 _WORKING_ARRAYS = 1
 
 
@@ -123,7 +92,6 @@ def padding_for_accuracy(accuracy: float | None) -> float:
 def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scaling) -> Grid:
     """The grid of ``method="engine"``: the PSF through :func:`difstar.psf`'s engine on the
     offsets the crop needs, planned here (outside jit) for every channel's wavelengths."""
-    from ._chain import engine_psf_shape
     from ._psf import plan_psf
 
     g = geometry_of(camera, scene)
