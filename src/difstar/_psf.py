@@ -228,4 +228,5 @@ def psf(
                            or not np.sum(wv[0]) > 0):
         raise ValueError("difstar.psf: weights must be finite, >= 0 and not all 0.")
     wts = wts / jnp.sum(wts)
-    return jnp.einsum("l,lhw->hw", wts, jax.vmap(one)(lam))
+    # one wavelength at a time (lax.map): the memory of one, whatever their number
+    return jnp.einsum("l,lhw->hw", wts, jax.lax.map(one, lam))

@@ -60,7 +60,7 @@ SAMPLINGS = ("pixel", "point")
 # result): the copies of the field sit L apart; the area-coverage cell correction leaves
 # each attenuated by about |x|/L near the window, so the fold-in error on a window of
 # extent E falls as (E/L)². L = E (1 + guard) with guard = _GUARD_A / sqrt(accuracy).
-_GUARD_A = 0.08
+_GUARD_A = 0.05
 _MIN_GUARD = 0.5
 # Largest phase step (radians, along a diagonal) across one sub-cell: the covered part's
 # phase average carries an error growing as the square of the step (measured on a circle
@@ -344,15 +344,19 @@ def fft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, s
     xg, _ = gauss_legendre(plan.nodes) if plan.nodes > 1 else (np.zeros(1), None)
     ic = (np.arange(w) - w // 2) % n  # column k at x = (k − W//2) p
     ir = (-(np.arange(h) - h // 2)) % n  # row k at y = −(k − H//2) p
+    # first pass once per column node (the pupil's rows, keeping the window's columns),
+    # second pass per row node over those columns, keeping the window's rows
+    firsts = []
+    for b in xg:  # column nodes: x offset b p
+        ramp_x = jnp.exp(2j * math.pi * f * (b * pixel_pitch))
+        firsts.append(jnp.fft.ifft(_fold(amp * ramp_x[None, :], n), n=n, axis=1)[:, ic] * n)
     rows = []
     for a in xg:  # row nodes: y offset −a p
         ramp_y = jnp.exp(2j * math.pi * f * (-a * pixel_pitch))
         cols = []
-        for b in xg:  # column nodes: x offset b p
-            ramp_x = jnp.exp(2j * math.pi * f * (b * pixel_pitch))
-            g = jnp.fft.ifft(_fold(amp * ramp_x[None, :], n), n=n, axis=1)[:, ic] * n  # (m, W)
+        for g in firsts:  # (m, W)
             field_t = jnp.fft.ifft(_fold((g * ramp_y[:, None]).T, n), n=n, axis=1)[:, ir] * n
-            cols.append(jnp.real(field_t) ** 2 + jnp.imag(field_t) ** 2)
+            cols.append(jnp.real(field_t) ** 2 + jnp.imag(field_t) ** 2)  # (W, H)
         rows.append(jnp.stack(cols, axis=-1))  # (W, H, nodes_x)
     inten = jnp.stack(rows, axis=-1)  # (W, H, nodes_x, nodes_y)
     x = (np.arange(w) - w // 2)[:, None] * pixel_pitch + xg[None, :] * pixel_pitch  # (W, m)
