@@ -44,8 +44,8 @@ def _dense(sens):
     return np.broadcast_to(np.asarray(cw.wavelengths), w.shape).copy(), w
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv=None, prog=None) -> int:
+    ap = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
     ap.add_argument("--crop", type=int, default=512, help="crop side in pixels (default 512)")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs (default 3)")
     ap.add_argument("--accuracy", type=float, action="append",
@@ -118,7 +118,8 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|---|---|")
     for name, ks, method, t, e, eo in rows:
         print(f"| {name} | {ks} | {method} | {t:.3f} | {t / t_tri3:.2f} | {e:.2e} | {eo:.2e} |")
-    print("\ncommand: python benchmarks/spectral.py " + " ".join(argv or []))
+    print("\ncommand: " + (prog or "python benchmarks/spectral.py") + " "
+          + " ".join(argv or []))
     return 0
 
 

@@ -34,6 +34,9 @@ def register(subparsers, name: str) -> None:
     p.add_argument("--psf", action="store_true",
                    help="instead: the PSF engine's figures (issue 13), by "
                    "benchmarks/psf_engine.py; needs a clone of the repository")
+    p.add_argument("--spectral", action="store_true",
+                   help="instead: spectral mode against trichromatic (issue 14), by "
+                   "benchmarks/spectral.py; needs a clone of the repository")
     p.add_argument("--json", help="also write the full result as JSON to this file (its "
                    "folder must exist; an existing file is replaced)")
     p.set_defaults(func=_cmd_bench)
@@ -44,7 +47,9 @@ def _cmd_bench(a) -> int:
     from .io._output import OutputError, write_file_atomic
 
     if a.psf:
-        return _run_psf_benchmark()
+        return _run_repo_benchmark("psf_engine.py", "--psf")
+    if a.spectral:
+        return _run_repo_benchmark("spectral.py", "--spectral")
     cache = Path(a.cache)
     if cache.exists() and not cache.is_dir():
         raise OutputError(f"--cache {cache} is a file; give a folder.")
@@ -67,16 +72,16 @@ def _cmd_bench(a) -> int:
     return 0
 
 
-def _run_psf_benchmark() -> int:
-    """benchmarks/psf_engine.py's main, from the repository checkout this package runs from."""
+def _run_repo_benchmark(name: str, flag: str) -> int:
+    """benchmarks/NAME's main, from the repository checkout this package runs from."""
     import importlib.util
 
-    script = Path(__file__).resolve().parents[2] / "benchmarks" / "psf_engine.py"
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / name
     if not script.is_file():
         raise SystemExit(
-            f"difstar bench --psf: {script} not found. The PSF engine benchmark runs from a "
-            "clone of the repository (pip install -e . there), not from an installed package.")
-    spec = importlib.util.spec_from_file_location("difstar_bench_psf_engine", script)
+            f"difstar bench {flag}: {script} not found. This benchmark runs from a clone of "
+            "the repository (pip install -e . there), not from an installed package.")
+    spec = importlib.util.spec_from_file_location("difstar_bench_" + script.stem, script)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    return mod.main([], prog="difstar bench --psf")
+    return mod.main([], prog=f"difstar bench {flag}")
