@@ -1,0 +1,806 @@
+"""Fitting a PSF model to an intensity image (a star, a measured PSF): the public API.
+
+A model is assembled from parts with named parameters, each a :class:`Param` that is
+fixed or free (with bounds):
+
+- pupil: a *builder*, a function of the named parameters returning a difstar pupil
+  (:func:`jwst_pupil`: 18 hexagonal segments, three struts, an obstruction;
+  :func:`obstructed_circle_pupil`: a circular primary, obstruction and struts, e.g.
+  Spitzer); the whole pupil is rotated by ``rotation`` (degrees, counter-clockwise);
+- wavefront: Zernike terms by Noll index (parameters ``z4`` … in nm RMS over the
+  pupil's circumscribed circle);
+- light: one wavelength or a band (:class:`Light`, Gauss–Legendre nodes of a flat or
+  blackbody spectrum over the band);
+- source: a point at a sub-pixel position ``x0`` (columns, +right) and ``y0`` (rows,
+  +down) in data pixels from the window's centre pixel (H//2, W//2), total ``flux``
+  (the PSF's integral over the whole plane); the shift is a wavefront tilt, exact in
+  Fraunhofer optics;
+- detector: pixel integration at the data's pitch (``pixel_scale``, arcsec per data
+  pixel; any z_image / pitch with the same angle), a native pixel for drizzled or
+  oversampled data (a box ``native_pixel`` data pixels wide), a Gaussian blur ``jitter``
+  (σ in data pixels: pointing jitter, charge diffusion, resampling) and a constant
+  ``background``;
+- data (:class:`FitData`): an image, per-pixel σ (given or from a noise model: read
+  noise, Poisson with a gain, a relative floor), a mask of invalid pixels and a region of
+  interest.
+
+:func:`fit` runs optimistix's Levenberg–Marquardt on the free parameters mapped to O(1)
+numbers (a logistic map into the bounds), stage by stage (coarse to fine: a small
+central window and a few parameters first), optionally from several starts, and returns
+a :class:`FitResult` (values, Gauss–Newton standard errors, χ²/dof, the residual image,
+status and warnings about unconstrained parameters). The PSF's plan is made once,
+outside jit, with bounds on the pupil radius and on the wavefront's slope.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._psf import plan_psf, psf
+from ._pupil import Circle, Obstructed, Struts, hex_segments
+from ._zernike import Zernike
+
+ARCSEC = math.pi / (180 * 3600)
+_PITCH = 1e-5  # metres: the detector pitch the model uses (only pitch / z_image matters)
+
+
+class FitInputError(ValueError):
+    """A fitting input that cannot be right (a unit, a bound, NaN data, nothing free)."""
+
+
+# --- parameters -----------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Param:
+    """One named parameter: ``value`` (the start when free), ``free``, ``bounds``
+    (lo, hi) for a free parameter (a logistic map keeps it inside), ``scale`` (the
+    step of O(1) in the fitted variable for an unbounded parameter; default 10 % of
+    |value| or 1e-3)."""
+
+    value: float
+    free: bool = False
+    bounds: tuple[float, float] | None = None
+    scale: float | None = None
+
+    def __post_init__(self):
+        self.value = float(self.value)
+        if not math.isfinite(self.value):
+            raise FitInputError(f"Param value must be finite; got {self.value}.")
+        if self.bounds is not None:
+            lo, hi = (float(b) for b in self.bounds)
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise FitInputError(f"Param bounds must be finite with lo < hi; got {self.bounds}.")
+            self.bounds = (lo, hi)
+            if self.free and not lo <= self.value <= hi:
+                raise FitInputError(f"Param start {self.value} lies outside its bounds "
+                                    f"{self.bounds}.")
+
+
+def _as_param(p: Any) -> Param:
+    if isinstance(p, Param):
+        return dataclasses.replace(p)
+    if isinstance(p, Mapping):
+        return Param(p["value"], bool(p.get("free", False)),
+                     None if p.get("bounds") is None else tuple(p["bounds"]), p.get("scale"))
+    return Param(float(p))
+
+
+# --- pupil builders ---------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class PupilBuilder:
+    """A pupil as a function of named parameters. ``build(values)`` returns the pupil
+    before the overall rotation; ``defaults`` name its parameters and their defaults (SI
+    units, angles in degrees); ``max_radius`` bounds its radius over the fit (metres)."""
+
+    name: str
+    build: Callable[[Mapping[str, Any]], Any]
+    defaults: Mapping[str, float]
+    max_radius: float
+
+
+def jwst_pupil(flat_to_flat: float = 1.32, gap: float = 0.007) -> PupilBuilder:
+    """JWST-like: 18 hexagonal segments (two rings, no centre; flat top and bottom at
+    rotation 0, so the six big spikes are at 90° ± k 60°), a circular central
+    obstruction and three struts from the centre at 90° (up) and 270° ± ``strut_spread``
+    (30° by default: their spikes lie on the hexagons' at 30° and 150°).
+    Parameters: ``flat_to_flat``, ``gap``, ``obstruction`` (radius), ``strut_width``
+    (metres), ``strut_spread`` (degrees)."""
+
+    def build(v):
+        segs = hex_segments(2, v["flat_to_flat"], v["gap"])
+        s = jnp.deg2rad(v["strut_spread"])
+        angles = jnp.stack([jnp.asarray(math.pi / 2), 1.5 * math.pi - s, 1.5 * math.pi + s])
+        struts = Struts(angles, v["strut_width"])
+        return Obstructed(segs, Circle(v["obstruction"]), struts)
+
+    r = 2 * (flat_to_flat + gap) + flat_to_flat / math.sqrt(3)  # outermost vertex
+    return PupilBuilder("jwst", build, {"flat_to_flat": flat_to_flat, "gap": gap,
+                                        "obstruction": 0.37, "strut_width": 0.1,
+                                        "strut_spread": 30.0}, max_radius=1.05 * r)
+
+
+def obstructed_circle_pupil(radius: float = 0.425) -> PupilBuilder:
+    """A circular primary of ``radius`` with a circular obstruction (``obstruction``,
+    radius in metres) and three struts at 90° + k·120° + ``strut_offsets`` (degrees),
+    ``strut_width`` metres wide (Spitzer-like)."""
+
+    def build(v):
+        angles = jnp.deg2rad(jnp.asarray([90.0, 210.0, 330.0]))
+        struts = Struts(angles, v["strut_width"])
+        return Obstructed(Circle(v["radius"]), Circle(v["obstruction"]), struts)
+
+    return PupilBuilder("circle", build, {"radius": radius, "obstruction": 0.16,
+                                          "strut_width": 0.03}, max_radius=1.1 * radius)
+
+
+BUILDERS = {"jwst": jwst_pupil, "circle": obstructed_circle_pupil}
+
+
+# --- light, detector, data -----------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Light:
+    """Wavelengths (metres) and weights (summing to 1)."""
+
+    wavelengths: tuple[float, ...]
+    weights: tuple[float, ...]
+
+    def __post_init__(self):
+        lam = np.asarray(self.wavelengths, float)
+        if lam.ndim != 1 or lam.size < 1 or not np.all(np.isfinite(lam)):
+            raise FitInputError(f"Light: wavelengths must be finite numbers; got {lam}.")
+        if np.any(lam > 100e-6) or np.any(lam < 10e-9):
+            raise FitInputError(
+                f"Light: wavelengths {lam.tolist()} are not in metres (a wavelength above "
+                "100 µm or below 10 nm): give e.g. 0.9e-6 for 0.9 µm.")
+
+    @staticmethod
+    def monochromatic(wavelength: float) -> Light:
+        return Light((float(wavelength),), (1.0,))
+
+    @staticmethod
+    def band(lo: float, hi: float, n: int = 4, source: str | float = "flat") -> Light:
+        """``n`` Gauss–Legendre nodes over [lo, hi] (metres), weighted by a flat
+        photon spectrum (``"flat"``) or a blackbody of temperature ``source`` kelvin
+        (photon counts)."""
+        if not (lo < hi):
+            raise FitInputError(f"Light.band: need lo < hi; got {lo}, {hi}.")
+        Light((lo, hi), (0.5, 0.5))  # unit check
+        x, w = np.polynomial.legendre.leggauss(int(n))
+        lam = 0.5 * (lo + hi) + 0.5 * (hi - lo) * x
+        if source != "flat":
+            t = float(source)
+            h, c, k = 6.62607015e-34, 2.99792458e8, 1.380649e-23
+            w = w * lam ** -4 / np.expm1(h * c / (lam * k * t))  # photons ∝ B_λ λ
+        w = w / w.sum()
+        return Light(tuple(lam.tolist()), tuple(w.tolist()))
+
+
+@dataclasses.dataclass(frozen=True)
+class Noise:
+    """σ² = read² + max(I, 0) / gain + (floor · I)² per pixel (I the data, same units).
+    ``read=None``: estimated from the border of the image (median absolute deviation)."""
+
+    read: float | None = None
+    gain: float = 1.0
+    floor: float = 0.0
+
+
+@dataclasses.dataclass
+class FitData:
+    """An image to fit: ``image`` (H, W), ``sigma`` (per pixel, or from ``noise``),
+    ``mask`` (True = use), cut to ``roi`` = (row0, row1, col0, col1) if given."""
+
+    image: np.ndarray
+    sigma: np.ndarray
+    mask: np.ndarray
+    pixel_scale: float | None = None
+    path: str | None = None
+
+    @staticmethod
+    def from_array(image, *, sigma=None, noise: Noise | None = None, mask=None, roi=None,
+                   pixel_scale=None, path=None) -> FitData:
+        img = np.asarray(image, dtype=float)
+        if img.ndim != 2 or min(img.shape) < 4:
+            raise FitInputError(f"FitData: the image must be 2-D, at least 4 × 4; got shape "
+                                f"{img.shape}.")
+        m = np.isfinite(img) if mask is None else (np.asarray(mask, bool) & np.isfinite(img))
+        if roi is not None:
+            r0, r1, c0, c1 = (int(v) for v in roi)
+            img, m = img[r0:r1, c0:c1], m[r0:r1, c0:c1]
+            if sigma is not None and np.ndim(sigma) == 2:
+                sigma = np.asarray(sigma)[r0:r1, c0:c1]
+        if not m.any():
+            raise FitInputError("FitData: no valid pixel (all NaN, infinite or masked).")
+        if np.count_nonzero(~np.isfinite(img) & m):
+            raise FitInputError("FitData: NaN or infinite values in unmasked pixels.")
+        img = np.where(m, img, 0.0)
+        if sigma is None:
+            noise = noise or Noise()
+            read = noise.read
+            if read is None:
+                b = max(2, min(img.shape) // 10)
+                border = np.concatenate([img[:b].ravel(), img[-b:].ravel(),
+                                         img[:, :b].ravel(), img[:, -b:].ravel()])
+                bm = np.concatenate([m[:b].ravel(), m[-b:].ravel(), m[:, :b].ravel(),
+                                     m[:, -b:].ravel()])
+                v = border[bm]
+                read = 1.4826 * np.median(np.abs(v - np.median(v)))
+                if not read > 0:
+                    read = 1e-3 * np.max(np.abs(img[m]))
+            if not (noise.gain > 0):
+                raise FitInputError(f"Noise.gain must be > 0; got {noise.gain}.")
+            var = read**2 + np.maximum(img, 0) / noise.gain + (noise.floor * img) ** 2
+            sigma = np.sqrt(var)
+        sigma = np.broadcast_to(np.asarray(sigma, float), img.shape).copy()
+        if np.any(~np.isfinite(sigma[m])) or np.any(sigma[m] <= 0):
+            raise FitInputError("FitData: sigma must be finite and > 0 on every used pixel.")
+        sigma[~m] = 1.0
+        return FitData(img, sigma, m, pixel_scale, path)
+
+    @staticmethod
+    def from_file(path, **kw) -> FitData:
+        from .io import read_image
+
+        im = read_image(path)
+        kw.setdefault("pixel_scale", im.pixel_scale)
+        mask = im.valid if kw.get("mask") is None else (im.valid & kw.pop("mask"))
+        kw.pop("mask", None)
+        return FitData.from_array(im.data, mask=mask, path=str(path), **kw)
+
+    def cropped(self, half: int) -> FitData:
+        """The central (2 half + 1)² window (around the data's centre pixel)."""
+        h, w = self.image.shape
+        r0, c0 = max(0, h // 2 - half), max(0, w // 2 - half)
+        r1, c1 = min(h, h // 2 + half + 1), min(w, w // 2 + half + 1)
+        return FitData(self.image[r0:r1, c0:c1], self.sigma[r0:r1, c0:c1],
+                       self.mask[r0:r1, c0:c1], self.pixel_scale, self.path)
+
+
+# --- the model --------------------------------------------------------------------------
+
+
+class _Shifted(eqx.Module):
+    """A wavefront tilt (tx, ty) plus Zernike terms: OPD = tx x + ty y + Σ c_j Z_j."""
+
+    zernike: Zernike | None
+    tx: Any
+    ty: Any
+
+    def opd(self, x, y):
+        w = self.tx * x + self.ty * y
+        return w if self.zernike is None else w + self.zernike.opd(x, y)
+
+
+#: Parameters every model has, with defaults (SI units except where noted).
+COMMON = {"rotation": 0.0, "x0": 0.0, "y0": 0.0, "flux": 1.0, "background": 0.0,
+          "pixel_scale": 0.03, "jitter": 0.0}
+
+
+class ImageModel:
+    """A star image: pupil builder, wavefront (Zernike Noll indices), light, detector.
+
+    ``params``: name → :class:`Param` (or a number, or a dict with value/free/bounds/
+    scale) for the common parameters (``rotation`` deg, ``x0``, ``y0`` data pixels,
+    ``flux``, ``background``, ``pixel_scale`` arcsec per data pixel, ``jitter`` σ in data
+    pixels), the pupil builder's and ``z<j>`` (nm RMS) for each Noll index in
+    ``zernike``. ``oversample``: data pixels per native detector pixel (drizzled or
+    oversampled data: the PSF is integrated over the data's fine pixels, then convolved
+    with a native pixel's box); ``pad``: extra data pixels computed around the window so
+    the blur does not wrap. ``accuracy``: the PSF engine's target."""
+
+    def __init__(self, pupil: PupilBuilder, params: Mapping[str, Any], *, light: Light,
+                 zernike: Sequence[int] = (), oversample: float = 1.0, pad: int = 8,
+                 accuracy: float = 1e-2, max_shift: float = 4.0):
+        self.pupil = pupil
+        self.light = light
+        self.zernike = tuple(int(j) for j in zernike)
+        if any(j < 2 for j in self.zernike):
+            raise FitInputError("ImageModel: Zernike Noll indices must be >= 2 (1 is piston).")
+        self.oversample = float(oversample)
+        self.pad = int(pad)
+        self.accuracy = float(accuracy)
+        self.max_shift = float(max_shift)
+        defaults = dict(COMMON) | dict(pupil.defaults) | {f"z{j}": 0.0 for j in self.zernike}
+        unknown = set(params) - set(defaults)
+        if unknown:
+            raise FitInputError(f"ImageModel: unknown parameters {sorted(unknown)}; known: "
+                                f"{sorted(defaults)}.")
+        self.params = {k: _as_param(params.get(k, v)) for k, v in defaults.items()}
+        ps = self.params["pixel_scale"]
+        for v in [ps.value, *(ps.bounds or ())]:
+            if not 1e-4 < v < 100:
+                raise FitInputError(f"ImageModel: pixel_scale {v} is not in arcsec per pixel "
+                                    "(expected 1e-4 … 100).")
+        for j in self.zernike:
+            p = self.params[f"z{j}"]
+            if max([abs(p.value), *(abs(b) for b in (p.bounds or ()))]) > 1e4:
+                raise FitInputError(f"ImageModel: z{j} = {p.value} (bounds {p.bounds}) is "
+                                    "not in nm RMS (over 10 µm).")
+        self._plans = {}
+
+    # names
+    @property
+    def names(self) -> list[str]:
+        return list(self.params)
+
+    @property
+    def free(self) -> list[str]:
+        return [k for k, p in self.params.items() if p.free]
+
+    def values(self) -> dict[str, float]:
+        return {k: p.value for k, p in self.params.items()}
+
+    def with_values(self, values: Mapping[str, float], free: Sequence[str] | None = None):
+        """A copy with new values (and, if given, only ``free`` left free)."""
+        m = object.__new__(ImageModel)
+        m.__dict__ = dict(self.__dict__)
+        m.params = {}
+        for k, p in self.params.items():
+            q = dataclasses.replace(p, value=float(values.get(k, p.value)))
+            if free is not None:
+                q.free = k in free and p.free
+            if q.bounds is not None:
+                q.value = min(max(q.value, q.bounds[0]), q.bounds[1])
+            m.params[k] = q
+        return m
+
+    def _bound(self, name, pick):
+        p = self.params[name]
+        vals = [p.value] + (list(p.bounds) if (p.free and p.bounds) else [])
+        return pick(vals)
+
+    def plan(self, shape):
+        """The PSF plan for an output window ``shape`` (data pixels, padding included),
+        made once with the largest angular scale and wavefront slope the bounds allow."""
+        key = tuple(shape)
+        if key in self._plans:
+            return self._plans[key]
+        ang = self._bound("pixel_scale", min) * ARCSEC / self.oversample
+        z = _PITCH / ang
+        r = float(self.pupil.max_radius)
+        tilt = self.max_shift * self._bound("pixel_scale", max) * ARCSEC
+        coeffs = {j: 1e-9 * max(abs(v) for v in [self.params[f"z{j}"].value,
+                                                  *(self.params[f"z{j}"].bounds or ())])
+                  for j in self.zernike}
+        coeffs = {j: c for j, c in coeffs.items() if c > 0}
+        zern = Zernike(coeffs, r) if coeffs else None
+        wf = _Shifted(zern, tilt, tilt)
+        plan = plan_psf(self._pupil_at(self.values()), wavelength=np.asarray(self.light.wavelengths),
+                        z_image=z, pixel_pitch=_PITCH, shape=key, sampling="pixel",
+                        accuracy=self.accuracy, wavefront=wf, max_radius=r)
+        self._plans[key] = plan
+        return plan
+
+    def _pupil_at(self, v):
+        pup = self.pupil.build(v)
+        return pup.transformed(jnp.deg2rad(v["rotation"]))
+
+    def image(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None):
+        """The model image (H, W) in data pixels for parameter values ``v`` (a dict of
+        scalars, traceable)."""
+        h, w = shape
+        o = self.oversample
+        pad = self.pad
+        hp, wp = h + 2 * pad, w + 2 * pad
+        plan = self.plan((hp, wp)) if plan is None else plan
+        ang = v["pixel_scale"] * ARCSEC  # radians per data pixel
+        z = _PITCH / ang * 1.0
+        zern = None
+        if self.zernike:
+            r = float(self.pupil.max_radius)
+            zern = Zernike({j: 1e-9 * v[f"z{j}"] for j in self.zernike}, r)
+        # a shift by (x0 columns right, y0 rows down) data pixels is a tilt of the
+        # wavefront: the field's phase exp(i k W) with W = −θ·x moves the image by +θ
+        tx = -v["x0"] * ang
+        ty = v["y0"] * ang
+        wf = _Shifted(zern, tx, ty)
+        pupil = self._pupil_at(v)
+        lam = np.asarray(self.light.wavelengths)
+        wts = np.asarray(self.light.weights)
+        img = psf(pupil, wavelength=lam, weights=wts, z_image=z, pixel_pitch=_PITCH,
+                  shape=(hp, wp), plan=plan, wavefront=wf)
+        # detector: native pixel box (oversampled data) and Gaussian blur, by FFT
+        fy = np.fft.fftfreq(hp)[:, None]
+        fx = np.fft.rfftfreq(wp)[None, :]
+        kern = jnp.exp(-2 * math.pi**2 * v["jitter"] ** 2 * (fx**2 + fy**2))
+        if o != 1.0:
+            kern = kern * jnp.asarray(np.sinc(o * fx) * np.sinc(o * fy))
+        img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
+        img = img[pad:pad + h, pad:pad + w]
+        return v["flux"] * img + v["background"]
+
+    def __call__(self, shape, values=None):
+        """Concrete model image at ``values`` (default: the current values)."""
+        v = self.values() if values is None else {**self.values(), **values}
+        v = {k: jnp.asarray(x, float) for k, x in v.items()}
+        return np.asarray(self.image(v, tuple(shape)))
+
+
+# --- parametrisation --------------------------------------------------------------------
+
+
+def _to_u(p: Param) -> float:
+    if p.bounds is not None:
+        lo, hi = p.bounds
+        t = min(max((p.value - lo) / (hi - lo), 1e-4), 1 - 1e-4)
+        return math.log(t / (1 - t))
+    return 0.0
+
+
+def _from_u(p: Param, u):
+    if p.bounds is not None:
+        lo, hi = p.bounds
+        return lo + (hi - lo) * jax.nn.sigmoid(u)
+    s = p.scale if p.scale else max(0.1 * abs(p.value), 1e-3)
+    return p.value + s * u
+
+
+# --- results --------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What :func:`fit` found. ``values``: every parameter (fixed ones at their value);
+    ``errors``: standard errors of the free ones, from the Gauss–Newton covariance
+    (JᵀJ)⁻¹ at the optimum, scaled by √(χ²/dof) when that exceeds 1 (``covariance`` is
+    the scaled matrix in the order of ``free``); ``status``: "converged" or why not;
+    ``warnings``: parameters at a bound, unconstrained (zero Jacobian column or a
+    standard error wider than the bounds); ``residual``: data − model (unmasked
+    pixels; 0 elsewhere)."""
+
+    values: dict
+    errors: dict
+    free: list
+    covariance: np.ndarray
+    chi2: float
+    dof: int
+    status: str
+    converged: bool
+    steps: int
+    model_image: np.ndarray
+    residual: np.ndarray
+    data: np.ndarray
+    mask: np.ndarray
+    warnings: list
+    wall_time: float
+    stages: list
+
+    @property
+    def chi2_dof(self) -> float:
+        return self.chi2 / max(self.dof, 1)
+
+    @property
+    def residual_rms_peak(self) -> float:
+        """RMS of the residual over the used pixels relative to the data's peak."""
+        r = self.residual[self.mask]
+        return float(np.sqrt(np.mean(r**2)) / np.max(self.data[self.mask]))
+
+    def summary(self) -> str:
+        lines = [f"status: {self.status} ({self.steps} steps, {self.wall_time:.1f} s)",
+                 f"chi2/dof: {self.chi2_dof:.4g} (dof {self.dof}); residual RMS / peak: "
+                 f"{100 * self.residual_rms_peak:.3f} %"]
+        for k in self.free:
+            lines.append(f"  {k:14s} = {self.values[k]:.6g} ± {self.errors[k]:.3g}")
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+# --- fitting ----------------------------------------------------------------------------
+
+
+def _one_fit(model: ImageModel, data: FitData, *, max_steps: int, rtol: float, atol: float):
+    import optimistix as optx
+
+    free = model.free
+    if not free:
+        raise FitInputError("fit: no free parameter (set free=true on at least one).")
+    shape = data.image.shape
+    plan = model.plan((shape[0] + 2 * model.pad, shape[1] + 2 * model.pad))
+    fixed = {k: jnp.asarray(p.value, float) for k, p in model.params.items() if not p.free}
+    params = [model.params[k] for k in free]
+    img = jnp.asarray(data.image)
+    wgt = jnp.asarray(np.where(data.mask, 1.0 / data.sigma, 0.0))
+
+    def values_of(u):
+        v = dict(fixed)
+        for i, (k, p) in enumerate(zip(free, params)):
+            v[k] = _from_u(p, u[i])
+        return v
+
+    def residuals(u, _):
+        return ((model.image(values_of(u), shape, plan) - img) * wgt).ravel()
+
+    u0 = jnp.asarray([_to_u(p) for p in params], float)
+    r0 = residuals(u0, None)
+    if not bool(jnp.all(jnp.isfinite(r0))):
+        raise FitInputError("fit: the model is not finite at the start; check the units "
+                            "(wavelength in metres, pixel_scale in arcsec, Zernike in nm).")
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(residuals, solver, u0, max_steps=max_steps, throw=False)
+    u = sol.value
+    ok = sol.result == optx.RESULTS.successful
+    steps = int(sol.stats.get("num_steps", -1))
+    status = "converged" if ok else f"not converged: {sol.result}"
+    if not ok and steps >= max_steps:
+        status = f"not converged: reached max_steps={max_steps}"
+    vals = {k: float(x) for k, x in values_of(u).items()}
+    return vals, status, bool(ok), steps
+
+
+def _errors(model: ImageModel, data: FitData, values: Mapping[str, float]):
+    """Gauss–Newton covariance in the physical parameters at ``values``."""
+    free = model.free
+    shape = data.image.shape
+    plan = model.plan((shape[0] + 2 * model.pad, shape[1] + 2 * model.pad))
+    base = {k: jnp.asarray(v, float) for k, v in values.items()}
+    wgt = jnp.asarray(np.where(data.mask, 1.0 / data.sigma, 0.0))
+    img = jnp.asarray(data.image)
+
+    def res(x):
+        v = dict(base)
+        for i, k in enumerate(free):
+            v[k] = x[i]
+        m = model.image(v, shape, plan)
+        return ((m - img) * wgt).ravel(), m
+
+    x0 = jnp.asarray([values[k] for k in free], float)
+    jac = np.asarray(jax.jit(jax.jacfwd(lambda x: res(x)[0]))(x0))
+    r, m = jax.jit(res)(x0)
+    r, m = np.asarray(r), np.asarray(m)
+    chi2 = float(r @ r)
+    dof = int(data.mask.sum()) - len(free)
+    jtj = jac.T @ jac
+    colnorm = np.sqrt(np.diag(jtj))
+    msgs = []
+    for k, c in zip(free, colnorm):
+        if not c > 1e-12 * max(colnorm.max(), 1e-300):
+            msgs.append(f"{k}: unconstrained (the model does not depend on it: zero "
+                        "Jacobian column); fix it.")
+    cov = np.linalg.pinv(jtj, rcond=1e-14)
+    red = chi2 / max(dof, 1)
+    cov = cov * max(red, 1.0)
+    err = np.sqrt(np.maximum(np.diag(cov), 0))
+    errors = {}
+    for i, k in enumerate(free):
+        errors[k] = float(err[i]) if colnorm[i] > 0 else float("inf")
+        p = model.params[k]
+        if p.bounds is not None:
+            lo, hi = p.bounds
+            if errors[k] > (hi - lo):
+                msgs.append(f"{k}: poorly constrained (standard error {errors[k]:.3g} is "
+                            f"wider than its bounds {p.bounds}).")
+            if min(values[k] - lo, hi - values[k]) < 1e-3 * (hi - lo):
+                msgs.append(f"{k} = {values[k]:.6g} is at a bound {p.bounds}: widen it or "
+                            "check the start.")
+    return errors, cov, chi2, dof, m, msgs
+
+
+def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = None,
+        starts: Mapping[str, Sequence[float]] | None = None, max_steps: int = 100,
+        rtol: float = 1e-6, atol: float = 1e-8, verbose: bool = False) -> FitResult:
+    """Fit ``model`` to ``data`` by Levenberg–Marquardt.
+
+    ``stages``: coarse to fine, each a dict with ``free`` (names, or "all": the model's
+    free parameters) and ``half`` (fit the central (2 half + 1)² pixels; None: the whole
+    image); each stage starts from the last one's values. Default: one stage, all free,
+    whole image. ``starts``: name → start values tried in the first stage (multi-start;
+    the lowest χ² goes on). Raises :class:`FitInputError` for inputs that cannot be right.
+    """
+    t0 = time.perf_counter()
+    if not model.free:
+        raise FitInputError("fit: no free parameter (set free=true on at least one).")
+    if data.image.shape[0] < 4 or data.image.shape[1] < 4:
+        raise FitInputError("fit: the data window is smaller than 4 × 4 pixels.")
+    stages = list(stages or [{"free": "all", "half": None}])
+    values = model.values()
+    log = []
+    status, ok, steps = "converged", True, 0
+    for si, st in enumerate(stages):
+        names = model.free if st.get("free", "all") == "all" else list(st["free"])
+        bad = set(names) - set(model.free)
+        if bad:
+            raise FitInputError(f"fit: stage {si} frees {sorted(bad)}, which are not free "
+                                "parameters of the model.")
+        half = st.get("half")
+        d = data if half is None else data.cropped(int(half))
+        tries = [{}]
+        if si == 0 and starts:
+            tries = [{}]
+            for k, vs in starts.items():
+                tries = [dict(t, **{k: float(x)}) for t in tries for x in vs]
+        best = None
+        for tr in tries:
+            m = model.with_values({**values, **tr}, free=names)
+            ts = time.perf_counter()
+            vals, status, ok, n = _one_fit(m, d, max_steps=max_steps, rtol=rtol, atol=atol)
+            chi2 = _chi2(m, d, vals)
+            log.append({"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
+                        "status": status, "steps": n, "seconds": time.perf_counter() - ts})
+            if verbose:
+                print(f"stage {si} start {tr}: chi2 {chi2:.6g} {status} {n} steps "
+                      f"{time.perf_counter() - ts:.1f} s", flush=True)
+            if best is None or chi2 < best[0]:
+                best = (chi2, vals, status, ok, n)
+        _, values, status, ok, steps = best
+    final = model.with_values(values)
+    errors, cov, chi2, dof, mimg, msgs = _errors(final, data, values)
+    res = np.where(data.mask, data.image - mimg, 0.0)
+    return FitResult(values=values, errors=errors, free=final.free, covariance=cov, chi2=chi2,
+                     dof=dof, status=status, converged=ok, steps=steps, model_image=mimg,
+                     residual=res, data=data.image, mask=data.mask, warnings=msgs,
+                     wall_time=time.perf_counter() - t0, stages=log)
+
+
+def _chi2(model, data, values):
+    shape = data.image.shape
+    v = {k: jnp.asarray(x, float) for k, x in values.items()}
+    m = np.asarray(model.image(v, shape, model.plan((shape[0] + 2 * model.pad,
+                                                     shape[1] + 2 * model.pad))))
+    r = np.where(data.mask, (m - data.image) / data.sigma, 0.0)
+    return float(np.sum(r**2))
+
+
+# --- spike angles measured from an image ---------------------------------------------------
+
+
+def spike_angles(image, centre=None, *, r_min=15.0, r_max=40.0, n_spikes=6, bins=720,
+                 symmetric=True):
+    """Angles (degrees, counter-clockwise from +x, y up, in [0, 180) when ``symmetric``)
+    of the ``n_spikes`` brightest spikes of an image, from the azimuthal profile of
+    r² I between ``r_min`` and ``r_max`` pixels of ``centre`` (x, y in pixel units from
+    the top-left pixel's centre; default: the intensity-weighted centre of the brightest
+    3 × 3 pixels). Each peak is refined by a parabola through its three bins. With
+    ``symmetric`` the profile is folded (θ and θ + 180° are one spike)."""
+    img = np.asarray(image, float)
+    h, w = img.shape
+    if centre is None:
+        r, c = np.unravel_index(np.nanargmax(img), img.shape)
+        sub = img[r - 1:r + 2, c - 1:c + 2]
+        yy, xx = np.mgrid[r - 1:r + 2, c - 1:c + 2]
+        centre = (float((sub * xx).sum() / sub.sum()), float((sub * yy).sum() / sub.sum()))
+    cx, cy = centre
+    yy, xx = np.mgrid[0:h, 0:w]
+    dx, dy = xx - cx, -(yy - cy)
+    rr = np.hypot(dx, dy)
+    th = np.degrees(np.arctan2(dy, dx)) % (180.0 if symmetric else 360.0)
+    period = 180.0 if symmetric else 360.0
+    sel = (rr >= r_min) & (rr <= r_max) & np.isfinite(img)
+    nb = bins // 2 if symmetric else bins
+    edges = np.linspace(0, period, nb + 1)
+    idx = np.clip(np.digitize(th[sel], edges) - 1, 0, nb - 1)
+    prof = np.bincount(idx, weights=(rr[sel] ** 2 * img[sel]), minlength=nb)
+    cnt = np.bincount(idx, minlength=nb)
+    prof = np.where(cnt > 0, prof / np.maximum(cnt, 1), 0)
+    # smooth a little (circularly)
+    k = np.array([1, 2, 3, 2, 1], float)
+    k /= k.sum()
+    prof = np.convolve(np.concatenate([prof[-2:], prof, prof[:2]]), k, "valid")
+    width = period / nb
+    peaks = []
+    p = prof.copy()
+    for _ in range(n_spikes // (2 if symmetric else 1)):
+        i = int(np.argmax(p))
+        a, b, c = prof[i - 1], prof[i], prof[(i + 1) % nb]
+        den = a - 2 * b + c
+        off = 0.5 * (a - c) / den if den != 0 else 0.0
+        peaks.append(((i + 0.5 + off) * width) % period)
+        lo, hi = i - int(8 / width), i + int(8 / width)
+        for j in range(lo, hi + 1):
+            p[j % nb] = -np.inf
+    return sorted(peaks)
+
+
+def model_spike_angles(values: Mapping[str, float], builder: str = "jwst") -> dict:
+    """The spike directions (degrees, [0, 180), counter-clockwise from +x in the image,
+    y up) a fitted model implies: perpendicular to the hexagons' edges and to the struts.
+    For the ``jwst`` builder: the six hexagon spikes (three directions) at
+    90° + rotation + k·60° and the strut spikes."""
+    rot = values.get("rotation", 0.0)
+    out = {}
+    if builder == "jwst":
+        out["hexagon"] = sorted(((90.0 + rot + 60 * k) % 180.0) for k in range(3))
+        sp = values.get("strut_spread", 30.0)
+        out["struts"] = sorted(((a + 90.0 + rot) % 180.0) for a in (90.0, 270 - sp, 270 + sp))
+    else:
+        out["struts"] = sorted(((a + 90.0 + rot) % 180.0) for a in (90.0, 210.0, 330.0))
+    return out
+
+
+def _nowarn():
+    warnings.simplefilter("ignore")
+
+
+# --- manifests ----------------------------------------------------------------------------
+
+
+def _resolve(path: str, manifest_dir) -> str:
+    """A data path from a manifest: absolute, or relative to the manifest's folder, the
+    current folder or the repository root (the folder above ``fit/``), whichever exists."""
+    from pathlib import Path
+
+    p = Path(path)
+    if p.is_absolute():
+        return str(p)
+    md = Path(manifest_dir).resolve()
+    cands = [md / p, Path.cwd() / p] + [a / p for a in md.parents if (a / "fit").is_dir()]
+    for c in cands:
+        if c.exists():
+            return str(c)
+    raise FitInputError(f"manifest: data file {path!r} not found (looked in "
+                        f"{', '.join(str(c.parent) for c in cands[:3])}).")
+
+
+def load_manifest(path):
+    """(model, data, options) from an image-fit manifest (JSON; see
+    data_schemas/image_fit_manifest.schema.json). ``options``: stages, starts,
+    max_steps, the raw manifest."""
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        man = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise FitInputError(f"manifest {path}: cannot read it as JSON ({e}).") from None
+    for key in ("data", "pupil", "light", "params"):
+        if key not in man:
+            raise FitInputError(f"manifest {path}: missing {key!r}.")
+    d = man["data"]
+    noise = d.get("noise", {})
+    fd = FitData.from_file(_resolve(d["path"], path.parent), roi=d.get("roi"),
+                           sigma=d.get("sigma"),
+                           noise=Noise(noise.get("read"), float(noise.get("gain", 1.0)),
+                                       float(noise.get("floor", 0.0))))
+    pu = dict(man["pupil"])
+    kind = pu.pop("builder")
+    if kind not in BUILDERS:
+        raise FitInputError(f"manifest: pupil builder must be one of {sorted(BUILDERS)}; got "
+                            f"{kind!r}.")
+    builder = BUILDERS[kind](**pu)
+    li = man["light"]
+    if "band" in li:
+        light = Light.band(*li["band"], n=int(li.get("n", 4)), source=li.get("source", "flat"))
+    else:
+        light = Light.monochromatic(li["wavelength"])
+    det = man.get("detector", {})
+    params = dict(man["params"])
+    img = fd.image[fd.mask]
+    b = max(2, min(fd.image.shape) // 10)
+    edge = np.ones(fd.image.shape, bool)
+    edge[b:-b, b:-b] = False
+    bg = float(np.median(fd.image[edge & fd.mask]))
+    auto = {"pixel_scale": fd.pixel_scale, "background": bg,
+            "flux": float(np.sum(img - bg))}
+    for k, spec in list(params.items()):
+        if isinstance(spec, dict) and spec.get("value") in ("header", "auto"):
+            if auto.get(k) is None:
+                raise FitInputError(f"manifest: {k} = {spec['value']!r} but it cannot be "
+                                    "found from the data (give a number).")
+            params[k] = dict(spec, value=auto[k])
+            if params[k].get("bounds_relative"):
+                lo, hi = params[k].pop("bounds_relative")
+                params[k]["bounds"] = [auto[k] * lo, auto[k] * hi]
+        if isinstance(spec, dict):
+            params[k].pop("bounds_relative", None)
+    model = ImageModel(builder, params, light=light, zernike=man.get("zernike", ()),
+                       oversample=float(det.get("oversample", 1.0)), pad=int(det.get("pad", 8)),
+                       accuracy=float(man.get("accuracy", 1e-2)))
+    opts = {"stages": man.get("stages"), "starts": man.get("starts"),
+            "max_steps": int(man.get("max_steps", 100)), "manifest": man,
+            "builder": kind}
+    return model, fd, opts
