@@ -68,10 +68,10 @@ class Param:
     step of O(1) in the fitted variable for an unbounded parameter; default 10 % of
     |value| or 1e-3)."""
 
-    value: float
-    free: bool = False
-    bounds: tuple[float, float] | None = None
-    scale: float | None = None
+    value: Any
+    free: Any = False
+    bounds: Any = None
+    scale: Any = None
 
     def __post_init__(self):
         self.value = float(self.value)
@@ -156,8 +156,8 @@ BUILDERS = {"jwst": jwst_pupil, "circle": obstructed_circle_pupil}
 class Light:
     """Wavelengths (metres) and weights (summing to 1)."""
 
-    wavelengths: tuple[float, ...]
-    weights: tuple[float, ...]
+    wavelengths: Any
+    weights: Any
 
     def __post_init__(self):
         lam = np.asarray(self.wavelengths, float)
@@ -169,11 +169,11 @@ class Light:
                 "100 µm or below 10 nm): give e.g. 0.9e-6 for 0.9 µm.")
 
     @staticmethod
-    def monochromatic(wavelength: float) -> Light:
+    def monochromatic(wavelength: Any) -> Light:
         return Light((float(wavelength),), (1.0,))
 
     @staticmethod
-    def band(lo: float, hi: float, n: int = 4, source: str | float = "flat") -> Light:
+    def band(lo: Any, hi: Any, n: int = 4, source: Any = "flat") -> Light:
         """``n`` Gauss–Legendre nodes over [lo, hi] (metres), weighted by a flat
         photon spectrum (``"flat"``) or a blackbody of temperature ``source`` kelvin
         (photon counts)."""
@@ -370,7 +370,7 @@ class ImageModel:
         key = tuple(shape)
         if key in self._plans:
             return self._plans[key]
-        ang = self._bound("pixel_scale", min) * ARCSEC / self.oversample
+        ang = self._bound("pixel_scale", min) * ARCSEC
         z = _PITCH / ang
         r = float(self.pupil.max_radius)
         tilt = self.max_shift * self._bound("pixel_scale", max) * ARCSEC

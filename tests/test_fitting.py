@@ -1,0 +1,176 @@
+"""The image-fitting API (difstar._fitting): recovery of known parameters from an image
+made by an independent NumPy generator (FFT of a high-resolution anti-aliased raster of
+an obstructed circle with three struts, pixels integrated by a 4 × 4 midpoint rule),
+standard errors, messages for inputs that cannot be right, and the JWST campaign's
+manifest."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from difstar._fitting import (
+    FitData,
+    FitInputError,
+    ImageModel,
+    Light,
+    Param,
+    fit,
+    load_manifest,
+    obstructed_circle_pupil,
+    spike_angles,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+ARCSEC = math.pi / (180 * 3600)
+LAM = 3.6e-6
+P = 0.4  # arcsec per data pixel
+TRUE = {"x0": 0.31, "y0": -0.22, "rotation": 4.0, "flux": 1000.0, "background": 2.0}
+
+
+def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n=1024,
+                radius=0.425, obstruction=0.16, strut_width=0.06):
+    """Fraction of power per data pixel by a NumPy FFT of a pupil raster (y up), then
+    ``flux`` × that + ``background``. Independent of difstar's engine."""
+    delta = P * ARCSEC / fine  # rad per fine sample
+    dx = LAM / (n * delta)  # pupil sample (m)
+    half = int(math.ceil(1.05 * radius / dx))
+    ss = 4  # anti-aliasing sub-samples a side
+    u = (np.arange(-half * ss, half * ss) + 0.5) / ss * dx
+    X, Y = np.meshgrid(u, u)  # axis 0: y ascending
+    inside = (np.hypot(X, Y) <= radius) & (np.hypot(X, Y) >= obstruction)
+    for a in np.deg2rad(np.array([90.0, 210.0, 330.0]) + rotation):
+        along = X * np.cos(a) + Y * np.sin(a)
+        across = -X * np.sin(a) + Y * np.cos(a)
+        inside &= ~((along >= 0) & (np.abs(across) <= strut_width / 2))
+    cov = inside.reshape(2 * half, ss, 2 * half, ss).mean(axis=(1, 3))
+    xc = (np.arange(-half, half) + 0.5) * dx
+    ax = 1.5 * delta + x0 * P * ARCSEC
+    ay = 1.5 * delta - y0 * P * ARCSEC
+    field = cov * np.exp(2j * math.pi * (xc[None, :] * ax + xc[:, None] * ay) / LAM)
+    big = np.zeros((n, n), complex)
+    big[:2 * half, :2 * half] = field
+    inten = np.abs(np.fft.fftshift(np.fft.fft2(big))) ** 2 / (n * n * np.sum(cov))
+    h, w = shape
+    ky = n // 2 + fine * (np.arange(h) - h // 2)
+    kx = n // 2 + fine * (np.arange(w) - w // 2)
+    blocks = np.zeros((h, w))
+    for my in range(fine):
+        for mx in range(fine):
+            blocks += inten[np.ix_(ky + my, kx + mx)]
+    img = blocks[::-1, :]  # rows run down
+    return flux * img + background
+
+
+def _model(**over):
+    params = {
+        "rotation": Param(0.0, True, (-20, 20)),
+        "x0": Param(0.0, True, (-2, 2)),
+        "y0": Param(0.0, True, (-2, 2)),
+        "flux": Param(800.0, True, scale=100.0),
+        "background": Param(0.0, True, scale=1.0),
+        "pixel_scale": Param(P),
+        "jitter": Param(0.0),
+        "obstruction": Param(0.16),
+        "strut_width": Param(0.06),
+    } | over
+    return ImageModel(obstructed_circle_pupil(0.425), params,
+                      light=Light.monochromatic(LAM), pad=4, accuracy=3e-3)
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    clean = _numpy_star(**TRUE)
+    sigma = 2e-3 * clean.max()
+    rng = np.random.default_rng(1)
+    noisy = clean + rng.normal(0, sigma, clean.shape)
+    return FitData.from_array(noisy, sigma=sigma), sigma
+
+
+def test_recovers_independent_synthetic_star(synthetic):
+    data, _ = synthetic
+    res = fit(_model(), data, max_steps=20)
+    v, e = res.values, res.errors
+    assert res.converged or "max_steps" in res.status, res.status
+    assert abs(v["x0"] - TRUE["x0"]) < 0.02 and abs(v["y0"] - TRUE["y0"]) < 0.02
+    assert abs(v["rotation"] - TRUE["rotation"]) < max(4 * e["rotation"], 0.5)
+    assert abs(v["flux"] / TRUE["flux"] - 1) < 0.01
+    assert res.chi2_dof < 3.0
+    assert res.residual_rms_peak < 5e-3
+    # standard errors: finite, positive, and the truth within a few of them (or the
+    # generator's own midpoint-rule error)
+    for k in res.free:
+        assert 0 < e[k] < float("inf")
+    assert abs(v["x0"] - TRUE["x0"]) < max(5 * e["x0"], 0.01)
+    assert e["x0"] < 0.01 and e["rotation"] < 1.0
+    assert res.model_image.shape == data.image.shape
+
+
+def test_unconstrained_parameter_is_reported(synthetic):
+    data, _ = synthetic
+    m = _model(rotation=Param(TRUE["rotation"]), x0=Param(TRUE["x0"]),
+               y0=Param(TRUE["y0"]), background=Param(TRUE["background"]),
+               jitter=Param(0.0, True, scale=0.1))
+    res = fit(m, data, max_steps=3)
+    assert any("jitter" in w and "unconstrained" in w for w in res.warnings), res.warnings
+
+
+def test_bad_inputs():
+    with pytest.raises(FitInputError, match="metres"):
+        Light.monochromatic(0.9)  # µm given
+    with pytest.raises(FitInputError, match="metres"):
+        Light.band(795, 1005)  # nm given
+    with pytest.raises(FitInputError, match="arcsec"):
+        _model(pixel_scale=Param(1.5e-7))  # radians given
+    with pytest.raises(FitInputError, match="nm RMS"):
+        ImageModel(obstructed_circle_pupil(), {"z4": Param(2e5)},
+                   light=Light.monochromatic(LAM), zernike=[4])
+    with pytest.raises(FitInputError, match="unknown parameters"):
+        _model(focal_length=Param(1.0))
+    with pytest.raises(FitInputError, match="outside its bounds"):
+        Param(5.0, True, (0, 1))
+    with pytest.raises(FitInputError, match="no valid pixel"):
+        FitData.from_array(np.full((8, 8), np.nan))
+    with pytest.raises(FitInputError, match="sigma"):
+        FitData.from_array(np.ones((8, 8)), sigma=0.0)
+    # NaN pixels are masked, not fitted
+    img = np.ones((8, 8))
+    img[2, 3] = np.nan
+    d = FitData.from_array(img, sigma=1.0)
+    assert not d.mask[2, 3] and d.mask.sum() == 63
+    fixed = _model(**{k: Param(1.0 if k == "flux" else 0.0) for k in
+                      ("rotation", "x0", "y0", "flux", "background")})
+    with pytest.raises(FitInputError, match="no free parameter"):
+        fit(fixed, FitData.from_array(np.ones((9, 9)), sigma=1.0))
+
+
+def test_spike_angles_of_lines():
+    h = w = 81
+    yy, xx = np.mgrid[0:h, 0:w]
+    dx, dy = xx - 40.3, -(yy - 39.8)
+    r = np.hypot(dx, dy) + 1.0
+    img = np.zeros((h, w))
+    for a in (12.0, 71.0, 133.0):
+        t = math.radians(a)
+        across = -dx * math.sin(t) + dy * math.cos(t)
+        img += np.exp(-0.5 * across**2) / r**2
+    ang = spike_angles(img, (40.3, 39.8), r_min=10, r_max=35, n_spikes=6)
+    np.testing.assert_allclose(sorted(ang), [12.0, 71.0, 133.0], atol=0.5)
+
+
+def test_jwst_manifest_loads_and_model_matches_data_shape():
+    path = ROOT / "fit" / "jwst-nircam" / "manifest.json"
+    data_file = ROOT.parent / "shared" / "data" / "measured_psf" / "psf_f090w_star0.fits"
+    if not data_file.exists():
+        pytest.skip("the shared JWST file is not beside the repository")
+    model, data, opts = load_manifest(path)
+    assert data.image.shape == (91, 91)
+    assert "rotation" in model.free and "z4" in model.free
+    assert opts["stages"]
+    small = data.cropped(10)
+    img = model(small.image.shape)
+    assert img.shape == small.image.shape and np.all(np.isfinite(img))
+    assert 0.2 < img.max() / small.image.max() < 5
