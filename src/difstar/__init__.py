@@ -92,6 +92,19 @@ from ._design import (
 )
 from ._examples import paper_camera as paper_camera
 from ._examples import paper_grid as paper_grid
+from ._fitting import FitData as FitData
+from ._fitting import FitInputError as FitInputError
+from ._fitting import FitResult as FitResult
+from ._fitting import ImageModel as ImageModel
+from ._fitting import Light as Light
+from ._fitting import Noise as Noise
+from ._fitting import Param as Param
+from ._fitting import PupilBuilder as PupilBuilder
+from ._fitting import fit as fit_image
+from ._fitting import jwst_pupil as jwst_pupil
+from ._fitting import load_manifest as load_fit_manifest
+from ._fitting import obstructed_circle_pupil as obstructed_circle_pupil
+from ._fitting import spike_angles as spike_angles
 from ._geometry import Geometry as Geometry
 from ._geometry import camera_geometry as camera_geometry
 from ._image import DiscSource as DiscSource

@@ -262,6 +262,15 @@ class FitData:
         kw.pop("mask", None)
         return FitData.from_array(im.data, mask=mask, path=str(path), **kw)
 
+    def annulus(self, r_min: float, r_max: float) -> FitData:
+        """Only the pixels between ``r_min`` and ``r_max`` pixels of the centre pixel
+        (e.g. the spikes, without the core)."""
+        h, w = self.image.shape
+        yy, xx = np.mgrid[0:h, 0:w]
+        r = np.hypot(yy - h // 2, xx - w // 2)
+        return FitData(self.image, self.sigma, self.mask & (r >= r_min) & (r <= r_max),
+                       self.pixel_scale, self.path)
+
     def cropped(self, half: int) -> FitData:
         """The central (2 half + 1)² window (around the data's centre pixel)."""
         h, w = self.image.shape
@@ -288,7 +297,7 @@ class _Shifted(eqx.Module):
 
 #: Parameters every model has, with defaults (SI units except where noted).
 COMMON = {"rotation": 0.0, "x0": 0.0, "y0": 0.0, "flux": 1.0, "background": 0.0,
-          "pixel_scale": 0.03, "jitter": 0.0}
+          "pixel_scale": 0.03, "jitter": 0.0, "halo": 0.0, "halo_width": 4.0}
 
 
 class ImageModel:
@@ -297,7 +306,8 @@ class ImageModel:
     ``params``: name → :class:`Param` (or a number, or a dict with value/free/bounds/
     scale) for the common parameters (``rotation`` deg, ``x0``, ``y0`` data pixels,
     ``flux``, ``background``, ``pixel_scale`` arcsec per data pixel, ``jitter`` σ in data
-    pixels), the pupil builder's and ``z<j>`` (nm RMS) for each Noll index in
+    pixels, ``halo`` fraction and ``halo_width`` σ in data pixels: a broad scattered-light
+    Gaussian), the pupil builder's and ``z<j>`` (nm RMS) for each Noll index in
     ``zernike``. ``oversample``: data pixels per native detector pixel (drizzled or
     oversampled data: the PSF is integrated over the data's fine pixels, then convolved
     with a native pixel's box); ``pad``: extra data pixels computed around the window so
@@ -417,7 +427,10 @@ class ImageModel:
         # detector: native pixel box (oversampled data) and Gaussian blur, by FFT
         fy = np.fft.fftfreq(hp)[:, None]
         fx = np.fft.rfftfreq(wp)[None, :]
-        kern = jnp.exp(-2 * math.pi**2 * v["jitter"] ** 2 * (fx**2 + fy**2))
+        f2 = fx**2 + fy**2
+        kern = jnp.exp(-2 * math.pi**2 * v["jitter"] ** 2 * f2)
+        kern = kern * ((1.0 - v["halo"])
+                       + v["halo"] * jnp.exp(-2 * math.pi**2 * v["halo_width"] ** 2 * f2))
         if o != 1.0:
             kern = kern * jnp.asarray(np.sinc(o * fx) * np.sinc(o * fy))
         img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
@@ -596,8 +609,11 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
     """Fit ``model`` to ``data`` by Levenberg–Marquardt.
 
     ``stages``: coarse to fine, each a dict with ``free`` (names, or "all": the model's
-    free parameters) and ``half`` (fit the central (2 half + 1)² pixels; None: the whole
-    image); each stage starts from the last one's values. Default: one stage, all free,
+    free parameters), ``fix`` (names held in this stage), ``half`` (fit the central
+    (2 half + 1)² pixels; None: the whole image) and ``annulus`` ([r_min, r_max] pixels:
+    only those radii, e.g. the spikes without the core, for the rotation); each stage
+    starts from the last one's values. Standard errors are computed at the end for every
+    free parameter of the model. Default: one stage, all free,
     whole image. ``starts``: name → start values tried in the first stage (multi-start;
     the lowest χ² goes on). Raises :class:`FitInputError` for inputs that cannot be right.
     """
@@ -612,12 +628,15 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
     status, ok, steps = "converged", True, 0
     for si, st in enumerate(stages):
         names = model.free if st.get("free", "all") == "all" else list(st["free"])
+        names = [k for k in names if k not in set(st.get("fix", ()))]
         bad = set(names) - set(model.free)
         if bad:
             raise FitInputError(f"fit: stage {si} frees {sorted(bad)}, which are not free "
                                 "parameters of the model.")
         half = st.get("half")
         d = data if half is None else data.cropped(int(half))
+        if st.get("annulus") is not None:
+            d = d.annulus(*st["annulus"])
         tries = [{}]
         if si == 0 and starts:
             tries = [{}]
