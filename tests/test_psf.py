@@ -132,7 +132,7 @@ def test_unreachable_accuracy_and_bad_arguments_are_clear_errors():
     pup = difstar.Circle(R22)
     with pytest.raises(difstar.SamplingError, match="accuracy target .* memory"):
         difstar.psf(pup, wavelength=450e-9, z_image=F, defocus=5e-3, pixel_pitch=P,
-                    shape=(512, 512), accuracy=1e-6)
+                    shape=(1024, 1024), accuracy=1e-7)
     with pytest.raises(ValueError, match="sampling must be one of"):
         difstar.psf(pup, wavelength=450e-9, z_image=F, pixel_pitch=P, shape=(8, 8),
                     sampling="area")

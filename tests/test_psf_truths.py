@@ -408,8 +408,10 @@ def test_energy_fraction_in_window():
     frac = R.radial_energy_in_rectangle(f, *R.window_rectangle(shape, P), h=LAM * 8 / 2)
     assert 0.95 < frac < 0.995
     for sampling in ("pixel", "point"):
+        # pixel: at accuracy 1e-4 (the default 1e-3 bounds the relative RMS, and leaves
+        # the window's energy about 1.2e-4 off through the light folded in at that target)
         got = _psf(difstar.Circle(R8), wavelength=LAM, z_image=Z8, pixel_pitch=P, shape=shape,
-                   sampling=sampling)
+                   sampling=sampling, accuracy=1e-4 if sampling == "pixel" else None)
         # point samples ×p² approximate the integral to the rule's error (f/8 at 3.9 µm
         # is oversampled ~2×: the midpoint rule of a band-limited density, error ~1e-4)
         tol = 1e-4 if sampling == "pixel" else 2e-3

@@ -97,7 +97,7 @@ def plan_psf(
                        pixel_pitch=p, shape=(h, w), sampling=sampling, accuracy=acc,
                        exact_ok=exact_ok, wavefront_slope=slope, scaling=scaling,
                        method=method)
-    _check_cost(plan, (h, w), acc)
+    _check_cost(plan, (h, w), acc, p)
     return plan
 
 
@@ -124,12 +124,15 @@ def _check_inputs(pupil, *, lams, z_r, p, r, dz):
 _MAX_SAMPLES = 1.5e8
 
 
-def _check_cost(plan: PSFPlan, shape, accuracy):
-    if plan.method != "mft":
+def _check_cost(plan: PSFPlan, shape, accuracy, pixel_pitch):
+    if plan.method == "exact":
         return
     h, w = shape
     pupil = (plan.pupil_window * plan.subcells) ** 2
     out = h * w * plan.nodes**2
+    if plan.method == "fft":  # the first pass holds the pupil's rows × the period
+        n = round(plan.period / pixel_pitch)
+        out = max(out, plan.pupil_window * n * plan.nodes)
     if max(pupil, out) > _MAX_SAMPLES:
         raise SamplingError(
             f"difstar.psf: the accuracy target {accuracy:g} needs a pupil of "
