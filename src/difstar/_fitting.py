@@ -117,19 +117,22 @@ def jwst_pupil(flat_to_flat: float = 1.32, gap: float = 0.007) -> PupilBuilder:
     obstruction and three struts from the centre at 90° (up) and 270° ± ``strut_spread``
     (30° by default: their spikes lie on the hexagons' at 30° and 150°).
     Parameters: ``flat_to_flat``, ``gap``, ``obstruction`` (radius), ``strut_width``
-    (metres), ``strut_spread`` (degrees)."""
+    (metres), ``strut_spread`` and ``strut_tilt`` (the upper strut's angle from 90°),
+    degrees."""
 
     def build(v):
         segs = hex_segments(2, v["flat_to_flat"], v["gap"])
         s = jnp.deg2rad(v["strut_spread"])
-        angles = jnp.stack([jnp.asarray(math.pi / 2), 1.5 * math.pi - s, 1.5 * math.pi + s])
+        up = 0.5 * math.pi + jnp.deg2rad(v["strut_tilt"])
+        angles = jnp.stack([up, 1.5 * math.pi - s, 1.5 * math.pi + s])
         struts = Struts(angles, v["strut_width"])
         return Obstructed(segs, Circle(v["obstruction"]), struts)
 
     r = 2 * (flat_to_flat + gap) + flat_to_flat / math.sqrt(3)  # outermost vertex
     return PupilBuilder("jwst", build, {"flat_to_flat": flat_to_flat, "gap": gap,
                                         "obstruction": 0.37, "strut_width": 0.1,
-                                        "strut_spread": 30.0}, max_radius=1.05 * r)
+                                        "strut_spread": 30.0, "strut_tilt": 0.0},
+                        max_radius=1.05 * r)
 
 
 def obstructed_circle_pupil(radius: float = 0.425) -> PupilBuilder:
@@ -584,7 +587,9 @@ def _errors(model: ImageModel, data: FitData, values: Mapping[str, float]):
         if not c > 1e-12 * max(colnorm.max(), 1e-300):
             msgs.append(f"{k}: unconstrained (the model does not depend on it: zero "
                         "Jacobian column); fix it.")
-    cov = np.linalg.pinv(jtj, rcond=1e-14)
+    dscale = np.where(colnorm > 0, 1.0 / np.where(colnorm > 0, colnorm, 1.0), 0.0)
+    cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * jtj * dscale[None, :],
+                                           rcond=1e-12) * dscale[None, :]
     red = chi2 / max(dof, 1)
     cov = cov * max(red, 1.0)
     err = np.sqrt(np.maximum(np.diag(cov), 0))
@@ -734,7 +739,8 @@ def model_spike_angles(values: Mapping[str, float], builder: str = "jwst") -> di
     if builder == "jwst":
         out["hexagon"] = sorted(((90.0 + rot + 60 * k) % 180.0) for k in range(3))
         sp = values.get("strut_spread", 30.0)
-        out["struts"] = sorted(((a + 90.0 + rot) % 180.0) for a in (90.0, 270 - sp, 270 + sp))
+        up = 90.0 + values.get("strut_tilt", 0.0)
+        out["struts"] = sorted(((a + 90.0 + rot) % 180.0) for a in (up, 270 - sp, 270 + sp))
     else:
         out["struts"] = sorted(((a + 90.0 + rot) % 180.0) for a in (90.0, 210.0, 330.0))
     return out
