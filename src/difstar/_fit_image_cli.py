@@ -51,8 +51,18 @@ def _figure(res, path, title):
 
 
 def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
-        max_steps: int | None = None) -> dict:
-    """Fit the manifest's model to its data; write result.json, fit.png, model.npy."""
+        max_steps: int | None = None, overwrite: bool = False) -> dict:
+    """Fit the manifest's model to its data; write result.json, fit.png, model.npy into
+    ``out``, a folder difstar creates (whole or not at all; see ``io._output``)."""
+    from .io._output import output_dir
+
+    with output_dir(out, overwrite=overwrite, inputs=[manifest],
+                    will_write=["result.json", "fit.png", "model.npy"],
+                    command="fit-image") as tmp:
+        return _run(manifest, tmp, verbose=verbose, max_steps=max_steps, final=out)
+
+
+def _run(manifest, out, *, verbose, max_steps, final) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -64,7 +74,6 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
               max_steps=max_steps or opts["max_steps"], verbose=verbose)
     wall = time.perf_counter() - t0
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     man = opts["manifest"]
     sp = man.get("spikes", {})
     h, w = data.image.shape
@@ -103,26 +112,58 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         print(res.summary())
         print(f"spikes measured in the data: {[round(a, 2) for a in measured]}")
         print(f"spikes measured in the model: {[round(a, 2) for a in modelled]}")
-        print(f"wall time {wall:.1f} s; written to {out}")
+        print(f"wall time {wall:.1f} s; written to {final}")
     return summary
+
+
+def _add_arguments(ap) -> None:
+    ap.add_argument("manifest", help="image-fit manifest (data_schemas/"
+                    "image_fit_manifest.schema.json)")
+    ap.add_argument("--out", required=True, help="folder for result.json, fit.png, model.npy "
+                    "(created by difstar; never an existing folder of yours)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace an --out folder difstar itself wrote before")
+    ap.add_argument("--max-steps", type=_positive_int, default=None,
+                    help="Levenberg–Marquardt steps per stage (default: the manifest's)")
+    ap.add_argument("--quiet", action="store_true", help="no progress or summary")
+
+
+def _positive_int(text: str) -> int:
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"--max-steps must be >= 1; got {v}")
+    return v
+
+
+def register(sub, name: str) -> None:
+    """``difstar fit-image`` in the command line."""
+    p = sub.add_parser(name, help="fit a PSF model (pupil, wavefront, band, detector) to a "
+                       "star image (FITS, TIFF, PNG, NumPy)")
+    _add_arguments(p)
+    p.set_defaults(func=_cmd)
+
+
+def _cmd(a) -> int:
+    from ._fitting import FitInputError
+
+    try:
+        run(a.manifest, a.out, verbose=not a.quiet, max_steps=a.max_steps,
+            overwrite=a.overwrite)
+    except FitInputError as e:
+        raise ValueError(f"difstar fit-image: {e}") from None
+    return 0
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m difstar._fit_image_cli",
                                  description="Fit a PSF model to a star image (manifest).")
-    ap.add_argument("manifest")
-    ap.add_argument("--out", required=True, help="folder for result.json, fit.png, model.npy")
-    ap.add_argument("--max-steps", type=int, default=None)
-    ap.add_argument("--quiet", action="store_true")
+    _add_arguments(ap)
     a = ap.parse_args(argv)
-    from ._fitting import FitInputError
-
     try:
-        run(a.manifest, a.out, verbose=not a.quiet, max_steps=a.max_steps)
-    except FitInputError as e:
-        print(f"difstar fit-image: {e}", file=sys.stderr)
+        return _cmd(a)
+    except ValueError as e:
+        print(str(e), file=sys.stderr)
         return 2
-    return 0
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@
     difstar example NAME [--crop H W]         print a built-in scene as JSON
     difstar bench ...                         speed against error (BENCHMARKS.md)
     difstar synth ... / difstar fit ...       synthetic captures and fitting
+    difstar fit-image MANIFEST --out DIR      fit a PSF model to a star image
 """
 
 from __future__ import annotations
@@ -231,7 +232,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_example)
 
     for name, module in (("bench", "difstar._bench_cli"), ("synth", "difstar._fit_cli"),
-                         ("fit", "difstar._fit_cli"), ("design", "difstar._design_cli")):
+                         ("fit", "difstar._fit_cli"), ("design", "difstar._design_cli"),
+                         ("fit-image", "difstar._fit_image_cli")):
         try:
             mod = __import__(module, fromlist=["register"])
         except ImportError:
