@@ -220,6 +220,17 @@ def _make_parents(folder: Path) -> list[Path]:
     return made
 
 
+#: The last termination signal received while writing (its exit code), or 0. A handler's
+#: exception can be swallowed (raised inside a garbage-collection callback, Python only
+#: prints it), so the commit step checks this too.
+_TERMINATED = [0]
+
+
+def _check_terminated() -> None:
+    if _TERMINATED[0]:
+        raise Terminated(_TERMINATED[0])
+
+
 @contextlib.contextmanager
 def _signals_raise():
     """While writing: SIGTERM and SIGHUP raise :class:`Terminated` in the main thread
@@ -229,10 +240,14 @@ def _signals_raise():
         return
 
     def handler(signum, frame):
+        _TERMINATED[0] = 128 + signum
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
         raise Terminated(128 + signum)
 
+    _TERMINATED[0] = 0
     old = {}
-    for s in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+    for s in (signal.SIGTERM, signal.SIGINT, getattr(signal, "SIGHUP", None)):
         if s is None:
             continue
         try:
@@ -277,11 +292,13 @@ def output_dir(dest: str | Path, *, overwrite: bool = False, inputs: Iterable = 
             os.umask(umask)
             os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; results are shared
             yield tmp
+            _check_terminated()
             files = [e.name for e in tmp.iterdir() if e.name != MARKER]
             _write_marker(tmp, files, command)
             # the destination may have changed while we computed: check again
             check_output_free(dest, overwrite=overwrite, inputs=inputs,
                               will_write=will_write, what=what)
+            _check_terminated()
             if dest.exists():
                 old = dest.parent / f".{dest.name}.difstar-old-{os.getpid()}-{secrets.token_hex(4)}"
                 os.replace(dest, old)
