@@ -26,6 +26,7 @@ import re
 import secrets
 import shutil
 import signal
+import sys
 import tempfile
 import threading
 import time
@@ -246,6 +247,16 @@ def _signals_raise():
         raise Terminated(128 + signum)
 
     _TERMINATED[0] = 0
+    # a signal's exception raised inside a callback Python cannot propagate from (a
+    # garbage-collection callback) is recorded above and acted on at the commit step:
+    # not printed as an "Exception ignored" traceback
+    old_hook = sys.unraisablehook
+
+    def hook(unraisable):
+        if not isinstance(unraisable.exc_value, (Terminated, KeyboardInterrupt)):
+            old_hook(unraisable)
+
+    sys.unraisablehook = hook
     old = {}
     for s in (signal.SIGTERM, signal.SIGINT, getattr(signal, "SIGHUP", None)):
         if s is None:
@@ -259,6 +270,7 @@ def _signals_raise():
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+        sys.unraisablehook = old_hook
 
 
 @contextlib.contextmanager
