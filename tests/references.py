@@ -121,7 +121,6 @@ def integrate_over_pixels(intensity, shape, pixel_pitch, *, sampling: str, nodes
                              for r, c in zip(rows, cols)])
         X = xc[cols][:, None, None] + off[None, None, :]
         Y = yc[rows][:, None, None] + off[None, :, None]
-        ww = (0.5 * p) ** 2 * (w[:, None] * w[None, :])
         return np.einsum("kij,ij->k", intensity(X, Y), ww)
     if sampling == "point":
         out = np.empty(shape)
@@ -484,16 +483,22 @@ def polygon_fresnel_intensity(vertices, *, wavelength, z_image, defocus=0.0, pha
     return intensity
 
 
+def _sampled(rows, cols, shape, pixel_pitch):
+    """(rows, cols) as integer arrays, and the farthest sampled point's radius plus a
+    pixel (how far the quadrature's intensity must reach)."""
+    rows = np.asarray(rows, int)
+    cols = np.asarray(cols, int)
+    xc, yc = pixel_centres(shape, pixel_pitch)
+    return rows, cols, float(np.max(np.hypot(xc[cols], yc[rows]))) + pixel_pitch
+
+
 def polygon_fresnel_psf(vertices, rows, cols, *, wavelength, z_image, defocus=0.0,
                         pixel_pitch, shape, sampling: str = "pixel", phase=None,
                         nodes: int | None = None, order: float = 1.0):
     """Pixel values (fraction of power) at the pixels (rows[k], cols[k]) of an (H, W)
     window for a polygonal pupil with Fresnel defocus Δz (and an optional extra phase),
     by quadrature of the Fresnel integral (:func:`polygon_fresnel_intensity`)."""
-    rows = np.asarray(rows, int)
-    cols = np.asarray(cols, int)
-    xc, yc = pixel_centres(shape, pixel_pitch)
-    x_max = float(np.max(np.hypot(np.abs(xc[cols]), np.abs(yc[rows])))) + pixel_pitch
+    rows, cols, x_max = _sampled(rows, cols, shape, pixel_pitch)
     inten = polygon_fresnel_intensity(vertices, wavelength=wavelength, z_image=z_image,
                                       defocus=defocus, phase=phase, x_max=x_max, order=order)
     if nodes is None:
@@ -642,10 +647,7 @@ def disc_fresnel_psf(radius, rows, cols, *, wavelength, z_image, defocus=0.0, pi
                      order: float = 1.0):
     """Pixel values at (rows[k], cols[k]) for a circular pupil with any phase
     (:func:`disc_fresnel_intensity`), point-sampled or pixel-integrated."""
-    rows = np.asarray(rows, int)
-    cols = np.asarray(cols, int)
-    xc, yc = pixel_centres(shape, pixel_pitch)
-    x_max = float(np.max(np.hypot(np.abs(xc[cols]), np.abs(yc[rows])))) + pixel_pitch
+    rows, cols, x_max = _sampled(rows, cols, shape, pixel_pitch)
     inten = disc_fresnel_intensity(radius, wavelength=wavelength, z_image=z_image,
                                    defocus=defocus, phase=phase, x_max=x_max, order=order)
     if nodes is None:

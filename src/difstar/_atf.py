@@ -83,7 +83,7 @@ def atf(
     ``cell_average`` makes the whole ATF a cell average, like the pupil's area coverage:
     the defocus factor exp(i c |f|²) is averaged over each cell (to first order in the
     phase, a sinc of its gradient). The PSF then divides the cell's transform out exactly
-    (``_psf.cell_correction``); without this factor that division would be wrong for
+    (``_grid_psf.cell_correction``); without this factor that division would be wrong for
     defocused PSFs.
 
     ``window`` m > 0 (even) computes the ATF only on the centred m × m samples and leaves

@@ -183,6 +183,7 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
     nh, nw = fast_length(kh + w - 1), fast_length(kw + w - 1)
     _, _, r0, c0 = _conv_offsets(grid.crop, (w, w))
     b_ft = window_rfft2(b, (nh, nw))
+    i0, j0 = kh // 2 - h // 2, kw // 2 - wc // 2  # the crop within the PSF's offsets
     psfs, imgs = [], []
     for c in range(3):
         lam = sen.wavelengths[c]
@@ -202,7 +203,6 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
                     wavefront=camera.lens.wavefront, scaling=grid.scaling, plan=grid.psf_plan)
         full = jnp.fft.irfft2(jnp.fft.rfft2(p, s=(nh, nw)) * b_ft[c], s=(nh, nw))
         imgs.append(full[r0 : r0 + h, c0 : c0 + wc])
-        i0, j0 = kh // 2 - h // 2, kw // 2 - wc // 2
         psfs.append(p[i0 : i0 + h, j0 : j0 + wc])
     return jnp.stack(psfs), jnp.stack(imgs)
 

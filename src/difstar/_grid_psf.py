@@ -18,11 +18,6 @@ def bin_pixels(fine: Float[Array, "*b hq wq"], q: int) -> Float[Array, "*b h w"]
     return fine.reshape(*lead, hq // q, q, wq // q, q).sum(axis=(-3, -1))
 
 
-def block_centring_shift(n: int, q: int) -> float:
-    """Fine-grid shift that puts the PSF's centre at the centre of pixel n // 2's block."""
-    return (n // 2) * q + (q - 1) / 2 - (n * q) // 2
-
-
 def cell_correction(shape: tuple[int, int]) -> Array:
     """sinc(j/N) sinc(k/M) on the centred image grid.
 

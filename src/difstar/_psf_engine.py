@@ -222,10 +222,19 @@ def _fft_cost(m, h, w, nodes, n):
 # --- evaluation -----------------------------------------------------------------------------
 
 
+def _node_positions(nodes: int) -> np.ndarray:
+    """Where a pixel is sampled, in pixels from its centre: its centre, or its nodes."""
+    return gauss_legendre(nodes)[0] if nodes > 1 else np.zeros(1)
+
+
 def _offsets(n: int, nodes: int) -> np.ndarray:
     """Pixel offsets from the centre pixel (n//2) of every node, (n·nodes,), ascending."""
-    x, _ = gauss_legendre(nodes) if nodes > 1 else (np.zeros(1), np.ones(1))
-    return ((np.arange(n) - n // 2)[:, None] + x[None, :]).ravel()
+    return ((np.arange(n) - n // 2)[:, None] + _node_positions(nodes)[None, :]).ravel()
+
+
+def _cell_centres(count: int, step: float) -> Array:
+    """Centres of ``count`` cells of size ``step`` about 0, ascending."""
+    return jnp.asarray((np.arange(count) - (count - 1) / 2) * step)
 
 
 def _integrate(values: Array, shape: tuple[int, int], nodes: int) -> Array:
@@ -265,8 +274,7 @@ def _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan: 
     m, s = plan.pupil_window, plan.subcells
     df = 1.0 / plan.period
     scale = pupil_scale(wavelength, z_image, defocus, scaling)
-    f = (np.arange(m * s) - (m * s - 1) / 2) * (df / s)  # sub-cell centres, ascending
-    f = jnp.asarray(f)
+    f = _cell_centres(m * s, df / s)  # sub-cell centres
     xs = scale * f
     cell = scale * (df / s)
     cov = pupil.tiled_coverage(xs[None, :], xs[:, None], cell)
@@ -287,6 +295,20 @@ def _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan: 
     return amp, energy
 
 
+def _fraction_of_power(inten: Array, energy, *, pixel_pitch, shape, plan: PSFPlan) -> Array:
+    """|Σ H e|² at every node, (H·m, W·m) laid out as :func:`_offsets`, to the fraction of
+    the pupil's power per pixel: the cell correction, the pixel rule, the normalisation."""
+    h, w = shape
+    L = plan.period
+    # the cell correction: the coverage is the pupil convolved with one cell, whose
+    # transform, sinc(x/L) sinc(y/L), divides out exactly from the principal term
+    cx = jnp.asarray(np.sinc(_offsets(w, plan.nodes) * pixel_pitch / L) ** 2)
+    cy = jnp.asarray(np.sinc(_offsets(h, plan.nodes) * pixel_pitch / L) ** 2)
+    inten = inten / (cy[:, None] * cx[None, :])
+    # density |Σ H e|² / (L² energy) per m²; × p² per pixel
+    return _integrate(inten, shape, plan.nodes) * ((pixel_pitch / L) ** 2 / energy)
+
+
 def mft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, shape,
                scaling, plan: PSFPlan) -> Array:
     """Fraction of power per pixel by a matrix DFT from the sampled pupil (see module)."""
@@ -295,7 +317,7 @@ def mft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, s
     L = plan.period
     df = 1.0 / L
     amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
-    f = jnp.asarray((np.arange(m) - (m - 1) / 2) * df)
+    f = _cell_centres(m, df)
     x = _offsets(w, plan.nodes) * pixel_pitch  # metres
     y = -_offsets(h, plan.nodes) * pixel_pitch  # rows run along −y
     ex = jnp.exp(2j * math.pi * f[:, None] * jnp.asarray(x)[None, :])  # (m, W·n)
@@ -306,13 +328,7 @@ def mft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, s
     else:
         field = (ey @ amp) @ ex
     inten = jnp.real(field) ** 2 + jnp.imag(field) ** 2
-    # the cell correction: the coverage is the pupil convolved with one cell, whose
-    # transform, sinc(x/L) sinc(y/L), divides out exactly from the principal term
-    cx = jnp.asarray(np.sinc(x / L) ** 2)
-    cy = jnp.asarray(np.sinc(y / L) ** 2)
-    inten = inten / (cy[:, None] * cx[None, :])
-    # density |Σ H e|² / (L² energy) per m²; × p² per pixel
-    return _integrate(inten, shape, plan.nodes) * ((pixel_pitch / L) ** 2 / energy)
+    return _fraction_of_power(inten, energy, pixel_pitch=pixel_pitch, shape=shape, plan=plan)
 
 
 def _fold(a: Array, n: int) -> Array:
@@ -340,8 +356,8 @@ def fft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, s
     n = int(round(L / pixel_pitch))
     df = 1.0 / L
     amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
-    f = jnp.asarray((np.arange(m) - (m - 1) / 2) * df)
-    xg, _ = gauss_legendre(plan.nodes) if plan.nodes > 1 else (np.zeros(1), None)
+    f = _cell_centres(m, df)
+    xg = _node_positions(plan.nodes)
     ic = (np.arange(w) - w // 2) % n  # column k at x = (k − W//2) p
     ir = (-(np.arange(h) - h // 2)) % n  # row k at y = −(k − H//2) p
     # first pass once per column node (the pupil's rows, keeping the window's columns),
@@ -357,19 +373,11 @@ def fft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, s
         for g in firsts:  # (m, W)
             field_t = jnp.fft.ifft(_fold((g * ramp_y[:, None]).T, n), n=n, axis=1)[:, ir] * n
             cols.append(jnp.real(field_t) ** 2 + jnp.imag(field_t) ** 2)  # (W, H)
-        rows.append(jnp.stack(cols, axis=-1))  # (W, H, nodes_x)
-    inten = jnp.stack(rows, axis=-1)  # (W, H, nodes_x, nodes_y)
-    x = (np.arange(w) - w // 2)[:, None] * pixel_pitch + xg[None, :] * pixel_pitch  # (W, m)
-    y = -((np.arange(h) - h // 2)[:, None] + xg[None, :]) * pixel_pitch  # (H, m)
-    cx = jnp.asarray(np.sinc(x / L) ** 2)
-    cy = jnp.asarray(np.sinc(y / L) ** 2)
-    inten = inten / (cx[:, None, :, None] * cy[None, :, None, :])
-    if plan.nodes > 1:
-        _, wt = gauss_legendre(plan.nodes)
-        inten = jnp.einsum("whba,b,a->hw", inten, jnp.asarray(wt), jnp.asarray(wt))
-    else:
-        inten = inten[..., 0, 0].T
-    return inten * ((pixel_pitch / L) ** 2 / energy)
+        rows.append(jnp.stack(cols, axis=-1))  # (W, H, column node)
+    inten = jnp.stack(rows, axis=-1)  # (W, H, column node, row node)
+    # to :func:`_offsets`' layout: (H, row node, W, column node) → (H·m, W·m)
+    inten = inten.transpose(1, 3, 0, 2).reshape(h * len(xg), w * len(xg))
+    return _fraction_of_power(inten, energy, pixel_pitch=pixel_pitch, shape=shape, plan=plan)
 
 
 def evaluate(pupil, wavelength, *, z_image, defocus, pixel_pitch, shape, scaling,

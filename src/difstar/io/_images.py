@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._files import readable_file
+
 _FITS = (".fits", ".fit", ".fts", ".fits.gz", ".fit.gz", ".fts.gz", ".fz")
 _TIFF = (".tif", ".tiff")
 _PNG = (".png",)
@@ -108,11 +110,7 @@ def read_image(path: str | os.PathLike, *, hdu: int | str | None = None,
     Values are returned as stored (FITS BSCALE/BZERO applied; 8/16-bit PNG and integer
     TIFF as their integer values), as float64. Raises ``ImageReadError`` naming the file.
     """
-    path = Path(path)
-    if not path.exists():
-        raise _err(path, "file not found")
-    if not path.is_file():
-        raise _err(path, "not a regular file")
+    path = readable_file(path, _err)
     try:
         kind = _kind(path)
     except OSError as e:

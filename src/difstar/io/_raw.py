@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._files import readable_file
+
 _EXPOSURE_TIME, _F_NUMBER, _FOCAL_LENGTH = 33434, 33437, 37386
 _EXIF_IFD = 34665
 _EXIF_NAMES = {"ExposureTime": _EXPOSURE_TIME, "FNumber": _F_NUMBER, "FocalLength": _FOCAL_LENGTH}
@@ -131,16 +133,7 @@ def read_raw(path: str | os.PathLike) -> RawCapture:
     """
     import rawpy
 
-    path = Path(path)
-    if not path.exists():
-        raise _err(path, "file not found")
-    if not path.is_file():
-        raise _err(path, "not a regular file")
-    try:
-        with path.open("rb"):
-            pass
-    except OSError as e:
-        raise _err(path, f"cannot be opened for reading ({e.strerror or e})") from e
+    path = readable_file(path, _err)
 
     size = path.stat().st_size
     if size == 0:
