@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._psf import plan_psf, psf
-from ._pupil import Circle, Obstructed, Struts, hex_segments
+from ._pupil import Circle, Obstructed, Struts, distorted, hex_segments
 from ._zernike import Zernike
 
 ARCSEC = math.pi / (180 * 3600)
@@ -300,7 +300,17 @@ class _Shifted(eqx.Module):
 
 #: Parameters every model has, with defaults (SI units except where noted).
 COMMON = {"rotation": 0.0, "x0": 0.0, "y0": 0.0, "flux": 1.0, "background": 0.0,
-          "pixel_scale": 0.03, "jitter": 0.0, "halo": 0.0, "halo_width": 4.0}
+          "pixel_scale": 0.03, "jitter": 0.0, "halo": 0.0, "halo_width": 4.0,
+          "shear": 0.0, "aspect": 0.0}
+
+
+def image_distortion(shear, aspect):
+    """The image-plane linear map D = [[1, 0], [shear, 1 + aspect]] (x right, y up): the
+    data's y axis keeps its direction (so ``rotation`` is read against it), a direction
+    at angle θ tilts by about shear·cos²θ, and y is stretched by 1 + aspect. A resampled
+    (drizzled) or distorted detector grid has such a map; it moves the spikes of a rigid
+    pupil off their 60° spacing."""
+    return jnp.array([[1.0, 0.0], [shear, 1.0 + aspect]])
 
 
 class ImageModel:
@@ -310,7 +320,8 @@ class ImageModel:
     scale) for the common parameters (``rotation`` deg, ``x0``, ``y0`` data pixels,
     ``flux``, ``background``, ``pixel_scale`` arcsec per data pixel, ``jitter`` σ in data
     pixels, ``halo`` fraction and ``halo_width`` σ in data pixels: a broad scattered-light
-    Gaussian), the pupil builder's and ``z<j>`` (nm RMS) for each Noll index in
+    Gaussian; ``shear`` and ``aspect``: the image-plane distortion of
+    :func:`image_distortion`), the pupil builder's and ``z<j>`` (nm RMS) for each Noll index in
     ``zernike``. ``oversample``: data pixels per native detector pixel (drizzled or
     oversampled data: the PSF is integrated over the data's fine pixels, then convolved
     with a native pixel's box); ``pad``: extra data pixels computed around the window so
@@ -393,15 +404,19 @@ class ImageModel:
         coeffs = {j: c for j, c in coeffs.items() if c > 0}
         zern = Zernike(coeffs, r) if coeffs else None
         wf = _Shifted(zern, tilt, tilt)
-        plan = plan_psf(self._pupil_at(self.values()), wavelength=np.asarray(self.light.wavelengths),
+        plan = plan_psf(self._pupil_at(self.values()),
+                        wavelength=np.asarray(self.light.wavelengths),
                         z_image=z, pixel_pitch=_PITCH, shape=key, sampling="pixel",
                         accuracy=self.accuracy, wavefront=wf, max_radius=r)
         self._plans[key] = plan
         return plan
 
     def _pupil_at(self, v):
-        pup = self.pupil.build(v)
-        return pup.transformed(jnp.deg2rad(v["rotation"]))
+        pup = self.pupil.build(v).transformed(jnp.deg2rad(v["rotation"]))
+        if any(self.params[k].free or self.params[k].value != 0 for k in ("shear", "aspect")):
+            d = image_distortion(v["shear"], v["aspect"])
+            pup = distorted(pup, jnp.linalg.inv(d).T)  # the pupil map for image map D
+        return pup
 
     def image(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None):
         """The model image (H, W) in data pixels for parameter values ``v`` (a dict of
@@ -731,18 +746,26 @@ def spike_angles(image, centre=None, *, r_min=15.0, r_max=40.0, n_spikes=6, bins
 
 def model_spike_angles(values: Mapping[str, float], builder: str = "jwst") -> dict:
     """The spike directions (degrees, [0, 180), counter-clockwise from +x in the image,
-    y up) a fitted model implies: perpendicular to the hexagons' edges and to the struts.
-    For the ``jwst`` builder: the six hexagon spikes (three directions) at
-    90° + rotation + k·60° and the strut spikes."""
+    y up) a fitted model implies: perpendicular to the hexagons' edges and to the struts,
+    then through the image distortion (``shear``, ``aspect``). For the ``jwst``
+    builder: the six hexagon spikes (three directions) at 90° + rotation + k·60° and the
+    strut spikes."""
     rot = values.get("rotation", 0.0)
+    d = np.array([[1.0, 0.0], [values.get("shear", 0.0), 1.0 + values.get("aspect", 0.0)]])
+
+    def seen(angles):
+        a = np.deg2rad(np.asarray(angles, float) + rot)
+        u = d @ np.stack([np.cos(a), np.sin(a)])
+        return sorted(float(t) for t in np.degrees(np.arctan2(u[1], u[0])) % 180.0)
+
     out = {}
     if builder == "jwst":
-        out["hexagon"] = sorted(((90.0 + rot + 60 * k) % 180.0) for k in range(3))
+        out["hexagon"] = seen([90.0 + 60 * k for k in range(3)])
         sp = values.get("strut_spread", 30.0)
         up = 90.0 + values.get("strut_tilt", 0.0)
-        out["struts"] = sorted(((a + 90.0 + rot) % 180.0) for a in (up, 270 - sp, 270 + sp))
+        out["struts"] = seen([a + 90.0 for a in (up, 270 - sp, 270 + sp)])
     else:
-        out["struts"] = sorted(((a + 90.0 + rot) % 180.0) for a in (90.0, 210.0, 330.0))
+        out["struts"] = seen([a + 90.0 for a in (90.0, 210.0, 330.0)])
     return out
 
 
