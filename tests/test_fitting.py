@@ -174,3 +174,48 @@ def test_jwst_manifest_loads_and_model_matches_data_shape():
     img = model(small.image.shape)
     assert img.shape == small.image.shape and np.all(np.isfinite(img))
     assert 0.2 < img.max() / small.image.max() < 5
+
+
+def test_converges_from_rough_starts(synthetic):
+    """From three starts with every free parameter within ± 20 % (of its bounds' half
+    width where it starts at 0), the fit of the independent star lands on the same
+    values, within a small fraction of their standard errors."""
+    from difstar._fitting import perturbed_starts
+
+    data, _ = synthetic
+    model = _model()
+    ref = fit(model, data, max_steps=30)
+    starts = perturbed_starts(model, 3, seed=2)
+    for s in starts:  # every start is rough but inside the bounds
+        for k, v in s.items():
+            p = model.params[k]
+            assert v != p.value
+            if p.bounds:
+                assert p.bounds[0] < v < p.bounds[1]
+    assert starts == perturbed_starts(model, 3, seed=2)
+    for s in starts:
+        res = fit(model.with_values(s), data, max_steps=30)
+        for k in ref.free:
+            assert abs(res.values[k] - ref.values[k]) < 0.05 * ref.errors[k], (k, s)
+
+
+def test_spike_profile_stage_recovers_the_rotation():
+    """A stage on the spikes' angular profiles alone (flux, background and centre held
+    at the truth) recovers the rotation of the independent star's struts."""
+    true = dict(TRUE, rotation=7.3, flux=1e5)
+    clean = _numpy_star((41, 41), **true)
+    sigma = 1e-4 * clean.max()
+    rng = np.random.default_rng(4)
+    data = FitData.from_array(clean + rng.normal(0, sigma, clean.shape), sigma=sigma)
+    model = _model(x0=Param(true["x0"]), y0=Param(true["y0"]), flux=Param(true["flux"]),
+                   background=Param(true["background"]))
+    res = fit(model, data, stages=[{"free": ["rotation"], "spikes": {
+        "r_min": 6, "r_max": 20, "n_spikes": 6, "half_width": 6, "bin_width": 0.5}}],
+        max_steps=30)
+    st = res.stages[0]
+    assert st["kind"] == "spikes" and len(st["directions"]) == 3
+    assert abs(res.values["rotation"] - true["rotation"]) < max(3 * res.errors["rotation"], 0.05)
+    assert res.errors["rotation"] < 0.2
+    with pytest.raises(FitInputError, match="spike"):
+        fit(model, data, stages=[{"free": ["rotation"], "spikes": {"r_min": 30,
+                                                                  "r_max": 31}}])

@@ -51,6 +51,7 @@ from ._pupil import Circle, Obstructed, Struts, distorted, hex_segments
 from ._zernike import Zernike
 
 ARCSEC = math.pi / (180 * 3600)
+PERTURB = 0.2  # rough starts: each free parameter within ± 20 % (perturbed_starts)
 _PITCH = 1e-5  # metres: the detector pitch the model uses (only pitch / z_image matters)
 
 
@@ -534,18 +535,109 @@ class FitResult:
 # --- fitting ----------------------------------------------------------------------------
 
 
-def _one_fit(model: ImageModel, data: FitData, *, max_steps: int, rtol: float, atol: float):
+class _PixelTarget:
+    """The residuals (model − data)/σ on the data's used pixels."""
+
+    kind = "pixels"
+
+    def __init__(self, data: FitData):
+        self.data = data
+        self.img = jnp.asarray(data.image)
+        self.wgt = jnp.asarray(np.where(data.mask, 1.0 / data.sigma, 0.0))
+        self.n = int(data.mask.sum())
+
+    def __call__(self, model_image, v):
+        return ((model_image - self.img) * self.wgt).ravel()
+
+
+class SpikeProfiles:
+    """The residuals of the spikes' angular profiles: around each spike direction
+    (``directions``, degrees, [0, 180), from the data), the mean of r²(I − background)
+    over the pixels between ``r_min`` and ``r_max`` data pixels of the star, in bins of
+    ``bin_width`` degrees within ± ``half_width`` (a spike and its opposite one share
+    bins), each window normalised to unit sum, for data and model alike; weighted by the
+    data's σ propagated through the same sums. The same pixels and bins serve both, so
+    the binning's own bias cancels and only the spikes' positions and shapes count, not
+    their brightness: a stage on these residuals fits the rotation and the distortion of
+    the pupil from the spikes' directions alone. ``centre`` (x, y data pixels from the
+    top-left pixel's centre, y down) and ``background`` are held (from earlier stages)."""
+
+    kind = "spikes"
+
+    def __init__(self, data: FitData, centre, background, directions, *, r_min=12.0,
+                 r_max=45.0, half_width=4.0, bin_width=0.25):
+        h, w = data.image.shape
+        cx, cy = (float(c) for c in centre)
+        yy, xx = np.mgrid[0:h, 0:w]
+        dx, dy = xx - cx, -(yy - cy)
+        r = np.hypot(dx, dy)
+        th = np.degrees(np.arctan2(dy, dx)) % 180.0
+        use = data.mask & (r >= r_min) & (r <= r_max)
+        nb = int(round(2 * half_width / bin_width))
+        rows, cols, vals, window = [], [], [], []
+        b = 0
+        for k, phi in enumerate(directions):
+            off = (th - phi + 90.0) % 180.0 - 90.0
+            j = np.floor((off + half_width) / bin_width).astype(int)
+            for jb in range(nb):
+                sel = np.flatnonzero((use & (j == jb)).ravel())
+                if sel.size == 0:
+                    continue
+                rows += [b] * sel.size
+                cols += sel.tolist()
+                vals += (r.ravel()[sel] ** 2 / sel.size).tolist()
+                window.append(k)
+                b += 1
+        if b == 0 or len(set(window)) < len(directions):
+            raise FitInputError("spike profiles: no pixel near a spike direction between "
+                                f"r = {r_min} and {r_max} px; check the annulus.")
+        mat = np.zeros((b, h * w))
+        mat[rows, cols] = vals
+        self.window = np.asarray(window)
+        self.n_windows = len(directions)
+        self.mat = jnp.asarray(mat)
+        self.background = float(background)
+        pd = mat @ (data.image - self.background).ravel()
+        sums = np.bincount(self.window, pd, minlength=self.n_windows)
+        if np.any(sums <= 0):
+            raise FitInputError("spike profiles: a spike window has no positive signal; "
+                                "check the directions and the annulus.")
+        self.profile = pd / sums[self.window]
+        sig = np.sqrt((mat**2) @ (data.sigma**2).ravel()) / sums[self.window]
+        self.wgt = jnp.asarray(1.0 / np.maximum(sig, 1e-12 * sig.max()))
+        self.data_profile = jnp.asarray(self.profile)
+        self.n = b
+        self.directions = [float(d) for d in directions]
+
+    def __call__(self, model_image, v):
+        pm = self.mat @ (model_image - v["background"]).ravel()
+        sums = jax.ops.segment_sum(pm, jnp.asarray(self.window), self.n_windows)
+        return (pm / sums[self.window] - self.data_profile) * self.wgt
+
+
+def _residual_fn(model: ImageModel, data: FitData, target):
+    """(values → residual vector, values → (residual, model image)) for ``model`` on
+    ``data``'s window."""
+    shape = data.image.shape
+    plan = model.plan((shape[0] + 2 * model.pad, shape[1] + 2 * model.pad))
+
+    def res(v):
+        m = model.image(v, shape, plan)
+        return target(m, v), m
+
+    return res
+
+
+def _one_fit(model: ImageModel, data: FitData, target, *, max_steps: int, rtol: float,
+             atol: float):
     import optimistix as optx
 
     free = model.free
     if not free:
         raise FitInputError("fit: no free parameter (set free=true on at least one).")
-    shape = data.image.shape
-    plan = model.plan((shape[0] + 2 * model.pad, shape[1] + 2 * model.pad))
     fixed = {k: jnp.asarray(p.value, float) for k, p in model.params.items() if not p.free}
     params = [model.params[k] for k in free]
-    img = jnp.asarray(data.image)
-    wgt = jnp.asarray(np.where(data.mask, 1.0 / data.sigma, 0.0))
+    res = _residual_fn(model, data, target)
 
     def values_of(u):
         v = dict(fixed)
@@ -554,7 +646,7 @@ def _one_fit(model: ImageModel, data: FitData, *, max_steps: int, rtol: float, a
         return v
 
     def residuals(u, _):
-        return ((model.image(values_of(u), shape, plan) - img) * wgt).ravel()
+        return res(values_of(u))[0]
 
     u0 = jnp.asarray([_to_u(p) for p in params], float)
     r0 = residuals(u0, None)
@@ -573,28 +665,26 @@ def _one_fit(model: ImageModel, data: FitData, *, max_steps: int, rtol: float, a
     return vals, status, bool(ok), steps
 
 
-def _errors(model: ImageModel, data: FitData, values: Mapping[str, float]):
-    """Gauss–Newton covariance in the physical parameters at ``values``."""
+def _errors(model: ImageModel, data: FitData, values: Mapping[str, float], target=None):
+    """Gauss–Newton covariance in the physical parameters at ``values``, scaled by
+    χ²/dof when that exceeds 1 (always, for spike profiles: their σ are relative)."""
+    target = _PixelTarget(data) if target is None else target
     free = model.free
-    shape = data.image.shape
-    plan = model.plan((shape[0] + 2 * model.pad, shape[1] + 2 * model.pad))
     base = {k: jnp.asarray(v, float) for k, v in values.items()}
-    wgt = jnp.asarray(np.where(data.mask, 1.0 / data.sigma, 0.0))
-    img = jnp.asarray(data.image)
+    resv = _residual_fn(model, data, target)
 
     def res(x):
         v = dict(base)
         for i, k in enumerate(free):
             v[k] = x[i]
-        m = model.image(v, shape, plan)
-        return ((m - img) * wgt).ravel(), m
+        return resv(v)
 
     x0 = jnp.asarray([values[k] for k in free], float)
     jac = np.asarray(jax.jit(jax.jacfwd(lambda x: res(x)[0]))(x0))
     r, m = jax.jit(res)(x0)
     r, m = np.asarray(r), np.asarray(m)
     chi2 = float(r @ r)
-    dof = int(data.mask.sum()) - len(free)
+    dof = target.n - len(free)
     jtj = jac.T @ jac
     colnorm = np.sqrt(np.diag(jtj))
     msgs = []
@@ -606,7 +696,7 @@ def _errors(model: ImageModel, data: FitData, values: Mapping[str, float]):
     cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * jtj * dscale[None, :],
                                            rcond=1e-12) * dscale[None, :]
     red = chi2 / max(dof, 1)
-    cov = cov * max(red, 1.0)
+    cov = cov * (red if target.kind == "spikes" else max(red, 1.0))
     err = np.sqrt(np.maximum(np.diag(cov), 0))
     errors = {}
     for i, k in enumerate(free):
@@ -630,12 +720,18 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
 
     ``stages``: coarse to fine, each a dict with ``free`` (names, or "all": the model's
     free parameters), ``fix`` (names held in this stage), ``half`` (fit the central
-    (2 half + 1)² pixels; None: the whole image) and ``annulus`` ([r_min, r_max] pixels:
-    only those radii, e.g. the spikes without the core, for the rotation); each stage
-    starts from the last one's values. Standard errors are computed at the end for every
-    free parameter of the model. Default: one stage, all free,
-    whole image. ``starts``: name → start values tried in the first stage (multi-start;
-    the lowest χ² goes on). Raises :class:`FitInputError` for inputs that cannot be right.
+    (2 half + 1)² pixels; None: the whole image), ``annulus`` ([r_min, r_max] pixels:
+    only those radii) and ``spikes`` (a dict of :class:`SpikeProfiles` options:
+    ``r_min``, ``r_max``, ``half_width``, ``bin_width``, ``n_spikes`` (default 8): fit
+    the spikes' angular profiles instead of the pixels, around the directions measured
+    in the data by :func:`spike_angles`, about the star's centre and background reached
+    so far: the stage for the rotation and distortion); ``max_steps`` (default: the
+    argument); each stage starts from the last one's values. Standard errors are
+    computed at the end for every free parameter of the model, on the pixels; those of
+    parameters last fitted in a ``spikes`` stage come from that stage. Default: one
+    stage, all free, whole image. ``starts``: name → start values tried in the first
+    stage (multi-start; the lowest χ² goes on). Raises :class:`FitInputError` for inputs
+    that cannot be right.
     """
     t0 = time.perf_counter()
     if not model.free:
@@ -645,6 +741,8 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
     stages = list(stages or [{"free": "all", "half": None}])
     values = model.values()
     log = []
+    last_stage = {}
+    spike_errors = {}
     status, ok, steps = "converged", True, 0
     for si, st in enumerate(stages):
         names = model.free if st.get("free", "all") == "all" else list(st["free"])
@@ -657,6 +755,9 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
         d = data if half is None else data.cropped(int(half))
         if st.get("annulus") is not None:
             d = d.annulus(*st["annulus"])
+        target = _PixelTarget(d)
+        if st.get("spikes") is not None:
+            target = spike_target(d, values, **dict(st["spikes"]))
         tries = [{}]
         if si == 0 and starts:
             tries = [{}]
@@ -666,18 +767,31 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
         for tr in tries:
             m = model.with_values({**values, **tr}, free=names)
             ts = time.perf_counter()
-            vals, status, ok, n = _one_fit(m, d, max_steps=max_steps, rtol=rtol, atol=atol)
-            chi2 = _chi2(m, d, vals)
-            log.append({"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
-                        "status": status, "steps": n, "seconds": time.perf_counter() - ts})
+            vals, status, ok, n = _one_fit(m, d, target, max_steps=int(
+                st.get("max_steps", max_steps)), rtol=rtol, atol=atol)
+            chi2 = _chi2(m, d, vals, target)
+            entry = {"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
+                     "kind": target.kind, "status": status, "steps": n,
+                     "seconds": time.perf_counter() - ts}
+            log.append(entry)
             if verbose:
-                print(f"stage {si} start {tr}: chi2 {chi2:.6g} {status} {n} steps "
-                      f"{time.perf_counter() - ts:.1f} s", flush=True)
+                print(f"stage {si} ({target.kind}) start {tr}: chi2 {chi2:.6g} {status} "
+                      f"{n} steps {time.perf_counter() - ts:.1f} s", flush=True)
             if best is None or chi2 < best[0]:
-                best = (chi2, vals, status, ok, n)
-        _, values, status, ok, steps = best
+                best = (chi2, vals, status, ok, n, m, entry)
+        _, values, status, ok, steps, m, entry = best
+        for k in names:
+            last_stage[k] = si
+        if target.kind != "pixels":
+            errs = _errors(m, d, values, target)[0]
+            entry["errors"] = errs
+            entry["directions"] = target.directions
+            spike_errors[si] = errs
     final = model.with_values(values)
     errors, cov, chi2, dof, mimg, msgs = _errors(final, data, values)
+    for k in errors:
+        if last_stage.get(k) in spike_errors:
+            errors[k] = spike_errors[last_stage[k]][k]
     res = np.where(data.mask, data.image - mimg, 0.0)
     return FitResult(values=values, errors=errors, free=final.free, covariance=cov, chi2=chi2,
                      dof=dof, status=status, converged=ok, steps=steps, model_image=mimg,
@@ -685,12 +799,63 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
                      wall_time=time.perf_counter() - t0, stages=log)
 
 
-def _chi2(model, data, values):
-    shape = data.image.shape
+def spike_target(data: FitData, values: Mapping[str, float], *, n_spikes=8, r_min=12.0,
+                 r_max=45.0, half_width=4.0, bin_width=0.25, profiles=True):
+    """The residuals of the spikes about the star at the model's ``values`` (x0, y0 from
+    the window's centre pixel; background), around the directions :func:`spike_angles`
+    measures in the data: their angular profiles (:class:`SpikeProfiles`), or with
+    ``profiles=False`` the pixels themselves within ± ``half_width`` degrees of each
+    direction and between ``r_min`` and ``r_max`` pixels."""
+    h, w = data.image.shape
+    centre = (w // 2 + values["x0"], h // 2 + values["y0"])
+    img = np.where(data.mask, data.image - values["background"], np.nan)
+    dirs = spike_angles(img, centre, r_min=r_min, r_max=r_max, n_spikes=n_spikes)
+    if profiles:
+        return SpikeProfiles(data, centre, values["background"], dirs, r_min=r_min,
+                             r_max=r_max, half_width=half_width, bin_width=bin_width)
+    yy, xx = np.mgrid[0:h, 0:w]
+    dx, dy = xx - centre[0], -(yy - centre[1])
+    r = np.hypot(dx, dy)
+    th = np.degrees(np.arctan2(dy, dx)) % 180.0
+    near = np.zeros((h, w), bool)
+    for phi in dirs:
+        near |= np.abs((th - phi + 90.0) % 180.0 - 90.0) <= half_width
+    t = _PixelTarget(FitData(data.image, data.sigma, data.mask & near & (r >= r_min)
+                             & (r <= r_max), data.pixel_scale, data.path))
+    t.kind = "spike pixels"
+    t.directions = [float(d) for d in dirs]
+    return t
+
+
+def perturbed_starts(model: ImageModel, n: int, *, rel: float = 0.2, seed: int = 0
+                     ) -> list[dict[str, float]]:
+    """``n`` rough starts: every free parameter's start moved by a uniform random
+    fraction within ± ``rel`` of its value (of half its bounds' width, or of its
+    ``scale``, where the start is 0), kept inside its bounds. For checking that a fit
+    converges to the same answer from anywhere near (the issue's ±20 %)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(int(n)):
+        start = {}
+        for k in model.free:
+            p = model.params[k]
+            size = abs(p.value)
+            if size == 0:
+                size = (0.5 * (p.bounds[1] - p.bounds[0]) if p.bounds is not None
+                        else (p.scale or 1e-3))
+            v = p.value + rel * size * rng.uniform(-1, 1)
+            if p.bounds is not None:
+                lo, hi = p.bounds
+                v = min(max(v, lo + 1e-3 * (hi - lo)), hi - 1e-3 * (hi - lo))
+            start[k] = float(v)
+        out.append(start)
+    return out
+
+
+def _chi2(model, data, values, target=None):
+    target = _PixelTarget(data) if target is None else target
     v = {k: jnp.asarray(x, float) for k, x in values.items()}
-    m = np.asarray(model.image(v, shape, model.plan((shape[0] + 2 * model.pad,
-                                                     shape[1] + 2 * model.pad))))
-    r = np.where(data.mask, (m - data.image) / data.sigma, 0.0)
+    r = np.asarray(_residual_fn(model, data, target)(v)[0])
     return float(np.sum(r**2))
 
 
