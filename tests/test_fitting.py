@@ -219,3 +219,56 @@ def test_spike_profile_stage_recovers_the_rotation():
     with pytest.raises(FitInputError, match="spike"):
         fit(model, data, stages=[{"free": ["rotation"], "spikes": {"r_min": 30,
                                                                   "r_max": 31}}])
+
+
+def test_noise_from_residuals_recovers_read_noise_and_gain():
+    """Known read noise and gain, drawn around a smooth star (the model): the estimate
+    recovers both within 10 %, and σ comes from the model."""
+    from difstar._fitting import Noise, noise_from_residuals
+
+    h = w = 121
+    yy, xx = np.mgrid[0:h, 0:w]
+    r2 = (yy - 60.3) ** 2 + (xx - 59.6) ** 2
+    model = 2.0 + 400.0 * np.exp(-r2 / 50.0) + 30.0 / (1 + r2 / 20.0)
+    read, gain = 0.8, 5.0
+    rng = np.random.default_rng(7)
+    img = model + rng.normal(0, 1, model.shape) * np.sqrt(read**2 + (model - 2.0) / gain)
+    data = FitData.from_array(img, sigma=1.0)
+    noise, d2 = noise_from_residuals(data, model, 2.0, floor=0.01, faint=0.2)
+    assert isinstance(noise, Noise)
+    assert abs(noise.read / read - 1) < 0.1 and abs(noise.gain / gain - 1) < 0.1
+    want = np.sqrt(noise.read**2 + (model - 2.0) / noise.gain + (0.01 * (model - 2.0)) ** 2)
+    np.testing.assert_allclose(d2.sigma, want, rtol=1e-12)
+    assert np.array_equal(data.image, d2.image) and data.sigma.max() == 1.0  # not modified
+
+
+def test_fainter_copy_has_the_fainter_stars_noise():
+    from difstar._fitting import Noise, fainter_copy
+
+    model = np.full((200, 200), 10.0)
+    model[50:150, 50:150] = 410.0
+    noise = Noise(1.0, 2.0)
+    rng = np.random.default_rng(3)
+    img = model + rng.normal(0, 1, model.shape) * np.sqrt(1.0 + (model - 10.0) / 2.0)
+    data = FitData.from_array(img, sigma=1.0)
+    c = fainter_copy(data, model, 10.0, 4.0, noise, seed=1)
+    inner, outer = c.image[50:150, 50:150], c.image[:40, :]
+    assert abs(inner.mean() - 110.0) < 0.3  # (410 − 10)/4 + 10
+    assert abs(inner.var() / (1.0 + 100.0 / 2.0) - 1) < 0.05  # read² + I/gain at I = 100
+    assert abs(outer.var() / 1.0 - 1) < 0.05
+    np.testing.assert_allclose(c.sigma[60, 60] ** 2, 1.0 + 100.0 / 2.0)
+    with pytest.raises(FitInputError, match="factor"):
+        fainter_copy(data, model, 10.0, 0.5, noise)
+
+
+def test_scan_puts_the_solver_in_the_right_basin(synthetic):
+    """From a start 15° off (beyond the struts' 120° pattern's local basins), a stage
+    that scans the rotation first recovers it."""
+    data, _ = synthetic
+    model = _model(rotation=Param(TRUE["rotation"] + 15.0, True, (-30, 30)),
+                   x0=Param(TRUE["x0"]), y0=Param(TRUE["y0"]),
+                   flux=Param(TRUE["flux"]), background=Param(TRUE["background"]))
+    res = fit(model, data, stages=[{"free": ["rotation"], "scan": {
+        "name": "rotation", "half_range": 20, "step": 1.0}}], max_steps=20)
+    assert abs(res.values["rotation"] - TRUE["rotation"]) < 1.0  # a 19 × 19 px star
+    assert res.stages[0]["scan"]["name"] == "rotation"

@@ -52,23 +52,81 @@ def _figure(res, path, title):
 
 def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         max_steps: int | None = None, overwrite: bool = False, robustness: int = 0,
-        seed: int = 0) -> dict:
+        seed: int = 0, fainter: tuple[float, ...] = ()) -> dict:
     """Fit the manifest's model to its data; write result.json, fit.png, model.npy into
     ``out``, a folder difstar creates (whole or not at all; see ``io._output``). With
     ``robustness`` = N, also refit from N rough starts (every free parameter ± 20 %,
-    :func:`difstar._fitting.perturbed_starts`) and write robustness.json / .md."""
+    :func:`difstar._fitting.perturbed_starts`) and write robustness.json / .md; with
+    ``fainter`` = (f1, …), also fit copies of the star f times fainter
+    (:func:`difstar._fitting.fainter_copy`, stand-ins for other stars) and write
+    fainter.json / .md."""
     from .io._output import output_dir
 
     files = ["result.json", "fit.png", "model.npy"]
     if robustness:
         files += ["robustness.json", "robustness.md"]
+    if fainter:
+        files += ["fainter.json", "fainter.md"]
     with output_dir(out, overwrite=overwrite, inputs=[manifest], will_write=files,
                     command="fit-image") as tmp:
         summary = _run(manifest, tmp, verbose=verbose, max_steps=max_steps, final=out)
         if robustness:
             _robustness(manifest, tmp, summary, robustness, seed, max_steps=max_steps,
                         verbose=verbose)
+        if fainter:
+            _fainter(manifest, tmp, summary, fainter, seed, max_steps=max_steps,
+                     verbose=verbose)
         return summary
+
+
+def _fainter(manifest, out, summary, factors, seed, *, max_steps, verbose) -> dict:
+    """Fit copies of the star made ``factors`` times fainter; compare the geometry."""
+    from ._fitting import FitData, Noise, fainter_copy, fit, load_manifest
+
+    model, data, opts = load_manifest(manifest)
+    noise = summary.get("noise")
+    if noise is None:
+        raise ValueError("--fainter needs a stage with noise_from_residuals in the manifest "
+                         "(the fainter copies need a noise model in the data's units).")
+    noise = Noise(noise["read"], noise["gain"], 0.0)
+    ref = summary["values"]
+    mimg = np.load(Path(out) / "model.npy")
+    rows = []
+    for i, f in enumerate(factors):
+        t = time.perf_counter()
+        d = fainter_copy(data, mimg, ref["background"], f, noise, seed=seed + i)
+        nz = opts["manifest"]["data"].get("noise", {})  # σ as the manifest makes them
+        d = FitData.from_array(d.image, mask=data.mask, pixel_scale=data.pixel_scale,
+                               noise=Noise(nz.get("read"), float(nz.get("gain", 1.0)),
+                                           float(nz.get("floor", 0.0))))
+        m = model.with_values({"flux": model.params["flux"].value / f})
+        res = fit(m, d, stages=opts["stages"], max_steps=max_steps or opts["max_steps"])
+        rows.append({"factor": f, "rotation": res.values["rotation"],
+                     "rotation_error": res.errors.get("rotation"),
+                     "residual_rms_over_peak": res.residual_rms_peak, "status": res.status,
+                     "values": res.values, "seconds": time.perf_counter() - t})
+        if verbose:
+            print(f"fainter × {f:g}: rotation {res.values['rotation']:.4f}° "
+                  f"({rows[-1]['seconds']:.0f} s)", flush=True)
+    rot = np.array([ref["rotation"]] + [r["rotation"] for r in rows])
+    study = {"seed": seed, "noise": {"read": noise.read, "gain": noise.gain},
+             "rotation_original": ref["rotation"], "copies": rows,
+             "rotation_spread_deg": float(rot.max() - rot.min())}
+    (Path(out) / "fainter.json").write_text(json.dumps(study, indent=2, default=float) + "\n")
+    lines = ["Copies of the star made f times fainter, with the noise a fainter star would "
+             f"have (read {noise.read:.3g}, gain {noise.gain:.4g} in the data's units, "
+             "estimated from the residuals), fitted by the same manifest.", "",
+             "| star | rotation (°) | residual RMS / peak | status | s |", "|---|---|---|---|---|",
+             f"| original | {ref['rotation']:.4f} ± {summary['errors'].get('rotation', 0):.4f} "
+             f"| {100 * summary['residual_rms_over_peak']:.3f} % | {summary['status']} | "
+             f"{summary['wall_time_s']:.0f} |"]
+    for r in rows:
+        lines.append(f"| × 1/{r['factor']:g} | {r['rotation']:.4f} ± {r['rotation_error']:.4f} "
+                     f"| {100 * r['residual_rms_over_peak']:.3f} % | {r['status']} | "
+                     f"{r['seconds']:.0f} |")
+    lines += ["", f"Spread of the rotations: {study['rotation_spread_deg']:.4f}°."]
+    (Path(out) / "fainter.md").write_text("\n".join(lines) + "\n")
+    return study
 
 
 def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose) -> dict:
@@ -157,6 +215,7 @@ def _run(manifest, out, *, verbose, max_steps, final) -> dict:
             "implied_by_fit": model_spike_angles(res.values, opts["builder"]),
         },
         "stages": res.stages,
+        "noise": next((st["noise"] for st in reversed(res.stages) if "noise" in st), None),
     }
     (out / "result.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
     np.save(out / "model.npy", res.model_image)
@@ -183,13 +242,28 @@ def _add_arguments(ap) -> None:
                     help="also refit from N rough starts (every free parameter within "
                     "± 20 %% of its start) and write robustness.json/.md (default 0)")
     ap.add_argument("--seed", type=_nonnegative_int, default=0,
-                    help="seed of the rough starts (default 0)")
+                    help="seed of the rough starts and of the fainter copies' noise "
+                    "(default 0)")
+    ap.add_argument("--fainter", type=_factors, default=(), metavar="F1,F2,...",
+                    help="also fit copies of the star F times fainter (stand-ins for other "
+                    "stars; needs a noise_from_residuals stage) and write fainter.json/.md")
 
 
 def _positive_int(text: str) -> int:
     v = int(text)
     if v < 1:
         raise argparse.ArgumentTypeError(f"--max-steps must be >= 1; got {v}")
+    return v
+
+
+def _factors(text: str) -> tuple[float, ...]:
+    try:
+        v = tuple(float(t) for t in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--fainter takes factors like 4,16; got {text!r}")
+    if not v or not all(np.isfinite(x) and x >= 1 for x in v):
+        raise argparse.ArgumentTypeError(f"--fainter factors must be finite and >= 1; got "
+                                         f"{text!r}")
     return v
 
 
@@ -213,7 +287,8 @@ def _cmd(a) -> int:
 
     try:
         run(a.manifest, a.out, verbose=not a.quiet, max_steps=a.max_steps,
-            overwrite=a.overwrite, robustness=a.robustness, seed=a.seed)
+            overwrite=a.overwrite, robustness=a.robustness, seed=a.seed,
+            fainter=a.fainter)
     except FitInputError as e:
         raise ValueError(f"difstar fit-image: {e}") from None
     return 0

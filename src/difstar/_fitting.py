@@ -284,6 +284,75 @@ class FitData:
                        self.mask[r0:r1, c0:c1], self.pixel_scale, self.path)
 
 
+def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, faint=0.01,
+                         bins=12) -> tuple[Noise, FitData]:
+    """Read noise and gain estimated from a fit's residual, and the data with σ from them.
+
+    The residual (data − model) is high-passed — each pixel minus the mean of its four
+    neighbours, divided by √1.25 so white noise keeps its variance — so that the model's
+    smooth mismatch drops out. Its robust variance (MAD²) in ``bins`` logarithmic bins of
+    the model's intensity I (above ``background``), over pixels fainter than ``faint`` × the
+    peak (wings and spikes, where noise rather than mismatch dominates), is fitted by
+    var = read² + I / gain (non-negative least squares). The new σ² = read² + I/gain +
+    (``floor`` · I)², with I from the model (not the data: no bias toward pixels that
+    fluctuated low); ``floor`` is the model's relative mismatch. For data whose units
+    are not electrons (a gain of 1 then weights the spikes far too little)."""
+    from scipy.optimize import nnls
+
+    m = np.asarray(model_image, float)
+    inten = np.maximum(m - background, 0.0)
+    r = np.where(data.mask, data.image - m, 0.0)
+    ok = data.mask.copy()
+    hp = np.zeros_like(r)
+    hp[1:-1, 1:-1] = (r[1:-1, 1:-1] - 0.25 * (r[:-2, 1:-1] + r[2:, 1:-1] + r[1:-1, :-2]
+                                                + r[1:-1, 2:])) / math.sqrt(1.25)
+    ok[0, :] = ok[-1, :] = ok[:, 0] = ok[:, -1] = False
+    ok[1:-1, 1:-1] &= (data.mask[:-2, 1:-1] & data.mask[2:, 1:-1] & data.mask[1:-1, :-2]
+                       & data.mask[1:-1, 2:])
+    sel = ok & (inten < faint * inten[ok].max())
+    if sel.sum() < 10 * bins:
+        raise FitInputError("noise from residuals: too few faint pixels to estimate the "
+                            "noise; give Noise(read, gain) instead.")
+    lo = max(np.quantile(inten[sel], 0.05), 1e-12 * inten[sel].max())
+    edges = np.concatenate([[0.0], np.geomspace(lo, inten[sel].max(), bins)])
+    xs, vs = [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        b = sel & (inten >= lo) & (inten <= hi)
+        if b.sum() < 8:
+            continue
+        h = hp[b]
+        xs.append(np.mean(inten[b]))
+        vs.append((1.4826 * np.median(np.abs(h - np.median(h)))) ** 2)
+    a = np.stack([np.ones(len(xs)), np.asarray(xs)], axis=1)
+    (read2, inv_gain), _ = nnls(a / np.asarray(vs)[:, None], np.ones(len(xs)))
+    read = math.sqrt(max(read2, 1e-300))
+    gain = 1.0 / inv_gain if inv_gain > 0 else float("inf")
+    var = read2 + inten * inv_gain + (floor * inten) ** 2
+    sigma = np.where(data.mask, np.sqrt(np.maximum(var, 1e-300)), 1.0)
+    return Noise(read, gain, floor), FitData(data.image, sigma, data.mask, data.pixel_scale,
+                                             data.path)
+
+
+def fainter_copy(data: FitData, model_image, background, factor, noise: Noise, *,
+                 seed=0) -> FitData:
+    """The data as a star ``factor`` times fainter would give them: (data − background)
+    / factor + background, plus Gaussian noise that brings each pixel's variance up to
+    that of the fainter star under ``noise`` (read² + I/gain, I from ``model_image``),
+    σ from the same model. A stand-in for other stars of the same kind: a fit of the
+    copy should give the same geometry (rotation) as the fit of the original."""
+    if not factor >= 1:
+        raise FitInputError(f"fainter_copy: factor must be >= 1; got {factor}.")
+    inten = np.maximum(np.asarray(model_image, float) - background, 0.0)
+    f = float(factor)
+    extra = noise.read**2 * (1 - 1 / f**2) + inten * (1 / f - 1 / f**2) / noise.gain
+    rng = np.random.default_rng(seed)
+    img = background + (data.image - background) / f + rng.normal(0, 1, inten.shape) * np.sqrt(
+        np.maximum(extra, 0.0))
+    sigma = np.sqrt(noise.read**2 + inten / f / noise.gain)
+    return FitData(np.where(data.mask, img, 0.0), np.where(data.mask, sigma, 1.0), data.mask,
+                   data.pixel_scale, data.path)
+
+
 # --- the model --------------------------------------------------------------------------
 
 
@@ -725,8 +794,13 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
     ``r_min``, ``r_max``, ``half_width``, ``bin_width``, ``n_spikes`` (default 8): fit
     the spikes' angular profiles instead of the pixels, around the directions measured
     in the data by :func:`spike_angles`, about the star's centre and background reached
-    so far: the stage for the rotation and distortion); ``max_steps`` (default: the
-    argument); each stage starts from the last one's values. Standard errors are
+    so far: the stage for the rotation and distortion); ``noise_from_residuals`` (a
+    dict of :func:`noise_from_residuals` options, e.g. ``{"floor": 0.03}``: before the
+    stage, replace σ by read noise and gain estimated from the residual of the values
+    reached, for this and the later stages and the standard errors); ``max_steps``
+    (default: the argument); ``rtol`` (the solver's relative tolerance, default: the
+    argument); ``scan`` (``{"name": "rotation", "half_range": 5,
+    "step": 0.2}``: first move that parameter to the lowest χ² on a grid, then solve); each stage starts from the last one's values. Standard errors are
     computed at the end for every free parameter of the model, on the pixels; those of
     parameters last fitted in a ``spikes`` stage come from that stage. Default: one
     stage, all free, whole image. ``starts``: name → start values tried in the first
@@ -751,6 +825,17 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
         if bad:
             raise FitInputError(f"fit: stage {si} frees {sorted(bad)}, which are not free "
                                 "parameters of the model.")
+        if st.get("noise_from_residuals") is not None:
+            mimg = np.asarray(_residual_fn(model.with_values(values), data,
+                                           _PixelTarget(data))(
+                {k: jnp.asarray(x, float) for k, x in values.items()})[1])
+            noise, data = noise_from_residuals(data, mimg, values["background"],
+                                               **dict(st["noise_from_residuals"]))
+            log.append({"stage": si, "noise": {"read": noise.read, "gain": noise.gain,
+                                               "floor": noise.floor}})
+            if verbose:
+                print(f"stage {si}: noise from the residuals: read {noise.read:.4g}, gain "
+                      f"{noise.gain:.4g}, floor {noise.floor:g}", flush=True)
         half = st.get("half")
         d = data if half is None else data.cropped(int(half))
         if st.get("annulus") is not None:
@@ -758,6 +843,13 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
         target = _PixelTarget(d)
         if st.get("spikes") is not None:
             target = spike_target(d, values, **dict(st["spikes"]))
+        if st.get("scan") is not None:
+            values = _scan(model, d, target, values, **dict(st["scan"]))
+            log.append({"stage": si, "scan": dict(st["scan"]),
+                        "best": values[st["scan"]["name"]]})
+            if verbose:
+                print(f"stage {si}: scan of {st['scan']['name']}: best "
+                      f"{values[st['scan']['name']]:.4g}", flush=True)
         tries = [{}]
         if si == 0 and starts:
             tries = [{}]
@@ -768,7 +860,7 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
             m = model.with_values({**values, **tr}, free=names)
             ts = time.perf_counter()
             vals, status, ok, n = _one_fit(m, d, target, max_steps=int(
-                st.get("max_steps", max_steps)), rtol=rtol, atol=atol)
+                st.get("max_steps", max_steps)), rtol=float(st.get("rtol", rtol)), atol=atol)
             chi2 = _chi2(m, d, vals, target)
             entry = {"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
                      "kind": target.kind, "status": status, "steps": n,
@@ -799,6 +891,23 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
                      wall_time=time.perf_counter() - t0, stages=log)
 
 
+def _scan(model: ImageModel, data: FitData, target, values, *, name: str, half_range,
+          step) -> dict:
+    """``values`` with ``name`` moved to the lowest χ² of ``target`` on a grid of
+    ``step`` over ± ``half_range`` about its value (inside its bounds): a coarse search
+    that puts the local solver in the right basin when the objective has several (the
+    rotation, against spikes whose fine structure repeats every fraction of a degree)."""
+    p = model.params[name]
+    grid = values[name] + np.arange(-half_range, half_range + 0.5 * step, step)
+    if p.bounds is not None:
+        grid = grid[(grid > p.bounds[0]) & (grid < p.bounds[1])]
+    res = _residual_fn(model, data, target)
+    base = {k: jnp.asarray(v, float) for k, v in values.items()}
+    chi2 = jax.jit(lambda x: jnp.sum(res({**base, name: x})[0] ** 2))
+    cost = np.array([float(chi2(jnp.asarray(g, float))) for g in grid])
+    return {**values, name: float(grid[int(np.argmin(cost))])}
+
+
 def spike_target(data: FitData, values: Mapping[str, float], *, n_spikes=8, r_min=12.0,
                  r_max=45.0, half_width=4.0, bin_width=0.25, profiles=True):
     """The residuals of the spikes about the star at the model's ``values`` (x0, y0 from
@@ -827,8 +936,7 @@ def spike_target(data: FitData, values: Mapping[str, float], *, n_spikes=8, r_mi
     return t
 
 
-def perturbed_starts(model: ImageModel, n: int, *, rel: float = 0.2, seed: int = 0
-                     ) -> list[dict[str, float]]:
+def perturbed_starts(model: ImageModel, n, *, rel=PERTURB, seed=0) -> list[dict[str, float]]:
     """``n`` rough starts: every free parameter's start moved by a uniform random
     fraction within ± ``rel`` of its value (of half its bounds' width, or of its
     ``scale``, where the start is 0), kept inside its bounds. For checking that a fit
