@@ -787,25 +787,29 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
         rtol: float = 1e-6, atol: float = 1e-8, verbose: bool = False) -> FitResult:
     """Fit ``model`` to ``data`` by Levenberg–Marquardt.
 
-    ``stages``: coarse to fine, each a dict with ``free`` (names, or "all": the model's
-    free parameters), ``fix`` (names held in this stage), ``half`` (fit the central
-    (2 half + 1)² pixels; None: the whole image), ``annulus`` ([r_min, r_max] pixels:
-    only those radii) and ``spikes`` (a dict of :class:`SpikeProfiles` options:
-    ``r_min``, ``r_max``, ``half_width``, ``bin_width``, ``n_spikes`` (default 8): fit
-    the spikes' angular profiles instead of the pixels, around the directions measured
-    in the data by :func:`spike_angles`, about the star's centre and background reached
-    so far: the stage for the rotation and distortion); ``noise_from_residuals`` (a
-    dict of :func:`noise_from_residuals` options, e.g. ``{"floor": 0.03}``: before the
-    stage, replace σ by read noise and gain estimated from the residual of the values
-    reached, for this and the later stages and the standard errors); ``max_steps``
-    (default: the argument); ``rtol`` (the solver's relative tolerance, default: the
-    argument); ``scan`` (``{"name": "rotation", "half_range": 5,
-    "step": 0.2}``: first move that parameter to the lowest χ² on a grid, then solve); each stage starts from the last one's values. Standard errors are
-    computed at the end for every free parameter of the model, on the pixels; those of
-    parameters last fitted in a ``spikes`` stage come from that stage. Default: one
-    stage, all free, whole image. ``starts``: name → start values tried in the first
-    stage (multi-start; the lowest χ² goes on). Raises :class:`FitInputError` for inputs
-    that cannot be right.
+    ``stages``: coarse to fine, each a dict with
+
+    - ``free`` (names, or "all": the model's free parameters), ``fix`` (names held);
+    - ``half`` (fit the central (2 half + 1)² pixels; None: the whole image) and
+      ``annulus`` ([r_min, r_max] pixels: only those radii);
+    - ``spikes``: fit the spikes instead of all pixels, around the directions
+      :func:`spike_angles` measures in the data, about the star's centre and background
+      reached so far (options of :func:`spike_target`: ``r_min``, ``r_max``,
+      ``half_width``, ``n_spikes``; ``profiles`` true: their angular profiles,
+      :class:`SpikeProfiles`; false: the pixels within ± ``half_width`` degrees): the
+      stage for the rotation;
+    - ``noise_from_residuals`` (options of :func:`noise_from_residuals`, e.g.
+      ``{"floor": 0.03}``): before the stage, σ from read noise and gain estimated from
+      the residual at the values reached, for this and later stages and the errors;
+    - ``scan`` (``{"name": "rotation", "half_range": 5, "step": 0.2}``): first move that
+      parameter to the lowest χ² on a grid, then solve;
+    - ``max_steps``, ``rtol``: the solver's limits (default: the arguments).
+
+    Each stage starts from the last one's values. Standard errors are computed at the
+    end for every free parameter on the pixels; those of parameters last fitted in a
+    spikes stage come from that stage. Default: one stage, all free, whole image.
+    ``starts``: name → start values tried in the first stage (multi-start; the lowest χ²
+    goes on). Raises :class:`FitInputError` for inputs that cannot be right.
     """
     t0 = time.perf_counter()
     if not model.free:
