@@ -36,19 +36,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 
 from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, simulate
 from ._image import DiscSource
+from ._lm import LMStepper, SolveResult
 from ._pupil import Polygon, RegularPolygon
 from ._sensor import Response, response_curve
 
@@ -378,18 +376,6 @@ def weights(sigma, saturated):
 
 # ------------------------------------------------------------------------- solving
 
-@dataclasses.dataclass
-class SolveResult:
-    u: jax.Array
-    steps: int
-    accepted: int
-    loss_start: float
-    loss: float
-    result: str
-    seconds: float
-    compile_seconds: float
-
-
 class Fitter:
     """Compiled least-squares machinery for one :class:`FitModel`: the solver step, the
     residuals and their Jacobian, compiled once and reused for any start ``u0`` and any
@@ -405,36 +391,14 @@ class Fitter:
         self.model = model
         fn = make_residual_fn(model)
         self._fn = fn
-        wrapped = lambda u, a: (fn(u, a), None)  # noqa: E731
-        if method == "lm":
-            sol = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-        elif method == "gn":
-            sol = optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.QR())
-        else:
-            raise ValueError(f"solver method must be 'lm' or 'gn'; got {method!r}")
+        self._lm = LMStepper(fn, method=method, rtol=rtol, atol=atol)
+        self._init, self._step = self._lm._init, self._lm._step  # for batched solves
         self.method = method
-        tags = frozenset()
-
-        @eqx.filter_jit
-        def init(u, a):
-            f_struct = jax.eval_shape(lambda: fn(u, a))
-            return sol.init(wrapped, u, a, {}, f_struct, None, tags)
-
-        @eqx.filter_jit
-        def step(u, state, a):
-            u, state, _ = sol.step(wrapped, u, a, {}, state, tags)
-            done, res = sol.terminate(wrapped, u, a, {}, state, tags)
-            leaves = jax.tree_util.tree_leaves(state.f_info.residual)
-            loss = 0.5 * sum(jnp.sum(r * r) for r in leaves)
-            size = getattr(state.search_state, "step_size", jnp.asarray(1.0))
-            return u, state, done, res == optx.RESULTS.successful, loss, size, \
-                state.num_accepted_steps
 
         def flat(u, a):
             r = fn(u, a)
             return jnp.concatenate([v.ravel() for v in jax.tree_util.tree_leaves(r)])
 
-        self._init, self._step = init, step
         self._flat = eqx.filter_jit(flat)
         self._jac = eqx.filter_jit(jax.jacfwd(flat))
         self._predict = eqx.filter_jit(lambda u: predict(model, from_unconstrained(model, u)))
@@ -454,46 +418,8 @@ class Fitter:
     def solve(self, u0, args, *, max_steps: int = 100, ftol: float = 1e-6,
               progress: Callable[[int, float, float, bool], None] | None = None
               ) -> SolveResult:
-        """Run up to ``max_steps`` solver steps from ``u0``; ``progress(k, loss,
-        step_size, done)`` is called from Python after each (loss of the last accepted
-        point; the LM step size is the trust-region scale, 1/damping).
-
-        Stops when optimistix's own test passes (changes of u and of the residuals
-        below atol + rtol·size) or when the loss has fallen by less than ``ftol``
-        (relative) over the last three steps: the residual test alone asks every one
-        of 10⁵ pixels to settle and can take many steps that no longer change the loss.
-        """
-        t0 = time.perf_counter()
-        state = self._init(u0, args)
-        u = u0
-        loss0 = None
-        loss = float("nan")
-        t_compile = 0.0
-        done = ok = False
-        k = acc = 0
-        history = []
-        t0 = time.perf_counter()
-        for k in range(1, max_steps + 1):
-            t1 = time.perf_counter()
-            u, state, done_a, ok_a, loss_a, size, acc_a = self._step(u, state, args)
-            loss = float(loss_a)
-            if k == 1:
-                t_compile = time.perf_counter() - t1
-            done, ok, acc = bool(done_a), bool(ok_a), int(acc_a)
-            if k == 2:  # the first step only evaluates the start
-                loss0 = loss
-            history.append(loss)
-            if not done and k > 4 and history[-4] - loss <= ftol * abs(loss):
-                done = ok = True
-            if progress is not None:
-                progress(k, loss, float(size), done)
-            if done:
-                break
-        return SolveResult(
-            u=u, steps=k, accepted=acc, loss_start=loss if loss0 is None else loss0,
-            loss=loss, result=("converged" if ok else "failed") if done else "max_steps",
-            seconds=time.perf_counter() - t0 - t_compile, compile_seconds=t_compile,
-        )
+        """See :meth:`difstar._lm.LMStepper.solve` (the stopping rule)."""
+        return self._lm.solve(u0, args, max_steps=max_steps, ftol=ftol, progress=progress)
 
     def covariance(self, u, args):
         """See :func:`covariance`."""
@@ -578,6 +504,6 @@ def response_error(x_fit: dict, x_true: dict, h_range: tuple[float, float], *, n
 __all__ = [
     "ParamSpec", "CameraConstants", "ConfigSpec", "CaptureSpec", "FitModel", "SolveResult",
     "to_unconstrained", "from_unconstrained", "camera_scene", "predict", "noise_sigma",
-    "make_residual_fn", "make_args", "weights", "Fitter", "solve", "loss_of", "covariance", "wrap_rotation",
-    "response_error", "pupil_of",
+    "make_residual_fn", "make_args", "weights", "Fitter", "solve", "loss_of", "covariance",
+    "wrap_rotation", "response_error", "pupil_of",
 ]

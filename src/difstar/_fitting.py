@@ -698,8 +698,8 @@ def _residual_fn(model: ImageModel, data: FitData, target):
 
 
 def _one_fit(model: ImageModel, data: FitData, target, *, max_steps: int, rtol: float,
-             atol: float):
-    import optimistix as optx
+             atol: float, ftol: float = 1e-6):
+    from ._lm import LMStepper
 
     free = model.free
     if not free:
@@ -718,20 +718,17 @@ def _one_fit(model: ImageModel, data: FitData, target, *, max_steps: int, rtol: 
         return res(values_of(u))[0]
 
     u0 = jnp.asarray([_to_u(p) for p in params], float)
-    r0 = residuals(u0, None)
+    r0 = jax.jit(residuals)(u0, None)
     if not bool(jnp.all(jnp.isfinite(r0))):
         raise FitInputError("fit: the model is not finite at the start; check the units "
                             "(wavelength in metres, pixel_scale in arcsec, Zernike in nm).")
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(residuals, solver, u0, max_steps=max_steps, throw=False)
-    u = sol.value
-    ok = sol.result == optx.RESULTS.successful
-    steps = int(sol.stats.get("num_steps", -1))
-    status = "converged" if ok else f"not converged: {sol.result}"
-    if not ok and steps >= max_steps:
-        status = f"not converged: reached max_steps={max_steps}"
-    vals = {k: float(x) for k, x in values_of(u).items()}
-    return vals, status, bool(ok), steps
+    sol = LMStepper(jax.jit(residuals), rtol=rtol, atol=atol).solve(
+        u0, None, max_steps=max_steps, ftol=ftol)
+    ok = sol.result == "converged"
+    status = {"converged": "converged", "failed": "not converged: the solver failed",
+              "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
+    vals = {k: float(x) for k, x in values_of(sol.u).items()}
+    return vals, status, ok, sol.steps
 
 
 def _errors(model: ImageModel, data: FitData, values: Mapping[str, float], target=None):
