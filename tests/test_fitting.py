@@ -272,3 +272,36 @@ def test_scan_puts_the_solver_in_the_right_basin(synthetic):
         "name": "rotation", "half_range": 20, "step": 1.0}}], max_steps=20)
     assert abs(res.values["rotation"] - TRUE["rotation"]) < 1.0  # a 19 × 19 px star
     assert res.stages[0]["scan"]["name"] == "rotation"
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "GBRG"])
+def test_fit_from_a_raw_mosaic_of_the_independent_star(tmp_path, pattern):
+    """The independent star written as a Bayer DNG (Poisson–Gaussian noise, a saturated
+    core), read back by LibRaw, fitted on its green photosites: the centre and flux
+    come back, and saturated pixels are left out."""
+    from difstar.io import write_dng
+
+    true = dict(TRUE, flux=3.0e5, background=0.0)
+    clean = _numpy_star((25, 25), **true)[:24, :24]  # DN above black; centre (12, 12)
+    black, white, gain, read = 512, 16383, 2.0, 3.0
+    rng = np.random.default_rng(5)
+    dn = black + rng.poisson(clean * gain) / gain + rng.normal(0, read, clean.shape)
+    raw = np.clip(np.round(dn), 0, white).astype(np.uint16)
+    path = write_dng(tmp_path / "star.dng", raw, pattern=pattern, black_level=black,
+                     white_level=white)
+    data = FitData.from_raw(path, channel="G", gain_e_per_dn=gain, read_noise_dn=read,
+                            pixel_scale=P)
+    tile = np.array(list(pattern)).reshape(2, 2)
+    green = np.tile(tile, (12, 12)) == "G"
+    assert np.array_equal(data.mask, green & (raw < white))
+    assert (raw >= white).any() and not data.mask[raw >= white].any()
+    scale = white - black
+    model = _model(rotation=Param(true["rotation"]),
+                   flux=Param(true["flux"] / scale * 0.9, True, scale=0.1),
+                   background=Param(0.0, True, scale=1e-3))
+    res = fit(model, data, max_steps=40)
+    assert abs(res.values["x0"] - true["x0"]) < 0.03 and abs(res.values["y0"] - true["y0"]) < 0.03
+    assert abs(res.values["flux"] * scale / true["flux"] - 1) < 0.02
+    assert 0.5 < res.chi2_dof < 2.0  # the noise model is right
+    with pytest.raises(FitInputError, match="channel"):
+        FitData.from_raw(path, channel="Y", gain_e_per_dn=gain, read_noise_dn=read)

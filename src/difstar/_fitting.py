@@ -266,6 +266,42 @@ class FitData:
         kw.pop("mask", None)
         return FitData.from_array(im.data, mask=mask, path=str(path), **kw)
 
+    @staticmethod
+    def from_raw(raw, *, channel="G", gain_e_per_dn, read_noise_dn, roi=None,
+                 pixel_scale=None) -> FitData:
+        """The pixels of one colour of a Bayer RAW mosaic as data for the image fit.
+
+        ``raw``: a path (read by :func:`difstar.io.read_raw`: any Bayer layout LibRaw
+        decodes, colour matrix or not; X-Trans, Foveon and monochrome sensors are
+        refused there) or a :class:`difstar.io.RawCapture`. The image is the whole
+        mosaic ζ = (raw − black)/(white − black) on its own pixel grid, so the model is
+        integrated over each photosite at the sensor's pitch; the mask keeps only the
+        photosites of ``channel`` ("R", "G" or "B", as the file's pattern places them)
+        that are not saturated. σ² = read_noise_dn² + (raw − black)/gain_e_per_dn (DN²;
+        Poisson in electrons), divided by (white − black)². ``roi`` = (row0, row1, col0,
+        col1) cuts a window around the source (keep row0 and col0 even to keep the
+        pattern's phase — any offset works, the mask follows the photosites).
+        ``pixel_scale``: arcsec per pixel (pitch / focal length)."""
+        from .io import read_raw
+        from .io._raw import RawCapture
+
+        cap = raw if isinstance(raw, RawCapture) else read_raw(raw)
+        if channel not in ("R", "G", "B"):
+            raise FitInputError(f"FitData.from_raw: channel must be 'R', 'G' or 'B'; got "
+                                f"{channel!r}.")
+        if not (gain_e_per_dn > 0 and read_noise_dn >= 0):
+            raise FitInputError("FitData.from_raw: gain_e_per_dn must be > 0 and "
+                                f"read_noise_dn >= 0; got {gain_e_per_dn}, {read_noise_dn}.")
+        h, w = cap.shape
+        tile = np.array(list(cap.pattern)).reshape(2, 2)
+        colour = np.tile(tile, (h // 2 + 1, w // 2 + 1))[:h, :w]
+        scale = cap.white_level - cap.black_level_tile.mean()
+        signal_dn = np.maximum(cap.cfa * scale, 0.0)
+        sigma = np.sqrt(read_noise_dn**2 + signal_dn / gain_e_per_dn) / scale
+        mask = (colour == channel) & ~cap.saturated
+        return FitData.from_array(cap.cfa, sigma=sigma, mask=mask, roi=roi,
+                                  pixel_scale=pixel_scale, path=str(cap.path))
+
     def annulus(self, r_min: float, r_max: float) -> FitData:
         """Only the pixels between ``r_min`` and ``r_max`` pixels of the centre pixel
         (e.g. the spikes, without the core)."""
