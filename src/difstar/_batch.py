@@ -3,8 +3,8 @@
 One code path for one device, several devices of one host and several hosts: the batch's
 leading axis is split over a one-axis mesh (``"batch"``) of the devices JAX sees
 (``jax.devices()``: every host's, once :func:`init_distributed` has joined them), and each
-device runs ``jax.vmap(fn)`` over its own slice (``jax.shard_map``; the items are
-independent, so no device talks to another). The host side pads the batch to a multiple
+device runs ``jax.vmap(fn)`` over its own slice (``jax.jit`` with ``NamedSharding(mesh,
+P("batch"))`` in and out; the items are independent, so no device needs another's). The host side pads the batch to a multiple
 of the device count, splits it into chunks that fit the devices' memory, reports progress
 per chunk and strips the padding. The jitted core is ``fn`` itself and stays pure.
 
@@ -16,6 +16,8 @@ per chunk and strips the padding. The jitted core is ``fn`` itself and stays pur
 - :func:`solve_many` — a :class:`difstar._fit.Fitter`'s solver steps for many fits in
   lockstep (each stops on its own test, as :meth:`Fitter.solve` does; a finished fit is
   held while the others go on).
+- :class:`FitBatcher` — many fits, each the ordinary code of one fit (a recovery study's
+  ``fit_manifest``), their solves gathered into :func:`solve_many` batches.
 - :func:`simulate_spectral` — a spectral :func:`difstar.simulate` whose wavelengths are
   the batch: the linear image is linear in the PSF, so it is the weighted sum of the
   monochromatic images, and the sensor is applied once to the sum.
@@ -34,6 +36,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -196,11 +199,13 @@ def gather(tree):
 
 
 def sharded_vmap(fn, mesh: Mesh):
-    """``jit(shard_map(vmap(fn)))``: each device maps ``fn`` over its slice of every
-    argument's leading axis (array pytrees in and out)."""
-    local = jax.vmap(fn)
-    return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=P(AXIS), out_specs=P(AXIS),
-                                 check_vma=False))
+    """``jit(vmap(fn))`` with every argument and result split over the mesh's
+    ``"batch"`` axis (array pytrees in and out): XLA's SPMD partitioner gives each device
+    its slice of the items, and as the items are independent each device maps ``fn`` over
+    its own (``jax.shard_map`` would say so explicitly, but its check of which values
+    vary across devices refuses the solvers' loops whose carry starts unbatched)."""
+    sh = NamedSharding(mesh, P(AXIS))
+    return jax.jit(jax.vmap(fn), in_shardings=sh, out_shardings=sh)
 
 
 def _per_device_bytes(compiled) -> int | None:
@@ -329,20 +334,29 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
                plan_out: list | None = None) -> list[ItemSolve]:
     """Many fits of one :class:`difstar._fit.Fitter` (same model, data of the same shapes)
     at once: ``u0`` (B, P) starts and ``args`` (:func:`difstar._fit.make_args` pytrees
-    stacked on a leading B axis), sharded over ``devices`` devices.
+    stacked on a leading B axis), split over ``devices`` devices.
 
-    The fits step in lockstep: each step is ``jax.vmap`` of the fitter's own compiled
-    step (optimistix), and each fit stops by :meth:`Fitter.solve`'s tests (optimistix's,
-    or a relative loss fall below ``ftol`` over three steps); a finished fit is held
-    (its u and solver state no longer change) while the others go on, so it ends where
+    The fits step in lockstep: each step is ``jax.vmap`` of the fitter's own step
+    (optimistix), and each fit stops by :meth:`Fitter.solve`'s tests (optimistix's, or a
+    relative loss fall below ``ftol`` over three steps); a finished fit is held (its u
+    and solver state no longer change) while the others go on, so it ends where
     :meth:`Fitter.solve` would. ``progress(i, result)`` is called as fit ``i`` finishes.
+
+    Each device runs its own slice as a program of its own (one compile per device):
+    under ``shard_map`` lineax compares the residuals' structure with one that carries
+    the mesh and refuses the solve, and a mesh-wide ``jit`` makes XLA's partitioner
+    gather the batch around the solver's loops (collectives that hang on host CPU
+    devices). In a multi-process job each process steps its own devices' fits and the
+    results are gathered at the end.
     """
     u0 = np.asarray(u0)
     n_items = u0.shape[0]
     if _leading(args) != n_items:
         raise ValueError("difstar solve_many: u0 and args need the same number of fits.")
     mesh = device_mesh(devices)
-    nd = mesh.size
+    devs = list(mesh.devices.flat)
+    nd = len(devs)
+    me = jax.process_index()
     box = {}
 
     def init_one(u, a):
@@ -357,67 +371,212 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
         d2 = jax.tree_util.tree_map(lambda new, old: jnp.where(hold, old, new), d2, dyn)
         return jnp.where(hold, u, u2), d2, done, ok, loss, acc
 
-    init = sharded_vmap(init_one, mesh)
-    step = sharded_vmap(step_one, mesh)
+    init, step = jax.jit(jax.vmap(init_one)), jax.jit(jax.vmap(step_one))
+
+    def put(tree, dev):
+        return jax.tree_util.tree_map(lambda x: jax.device_put(np.asarray(x), dev), tree)
+
     plan = plan_chunks(n_items, nd, chunk=chunk)
     if chunk is None and plan.per_device > 1:
-        ex = shard(_take({"u": u0, "a": args}, np.zeros(nd, dtype=int)), mesh)
+        ex = put(_take({"u": u0, "a": args}, np.zeros(1, dtype=int)), devs[0])
         dyn = init(ex["u"], ex["a"])
-        probe = step.lower(ex["u"], dyn, ex["a"], shard(np.zeros(nd, bool), mesh)).compile()
+        probe = step.lower(ex["u"], dyn, ex["a"], put(np.zeros(1, bool), devs[0])).compile()
         plan = plan_chunks(n_items, nd, item_bytes=_per_device_bytes(probe),
-                           free_bytes=device_memory())
+                           free_bytes=device_memory(devs[0]))
     if plan_out is not None:
         plan_out.append(plan)
-    size = plan.chunk
+    size, k_dev = plan.chunk, plan.per_device
     results: list[ItemSolve | None] = [None] * n_items
     for start in range(0, n_items, size):
         idx = np.arange(start, min(start + size, n_items))
         m = len(idx)
         full = np.concatenate([idx, np.zeros(size - m, dtype=int)])
-        placed = shard(_take({"u": u0, "a": args}, full), mesh)
-        u, a = placed["u"], placed["a"]
-        t_start = time.perf_counter()
-        dyn = init(u, a)
         hold = np.arange(size) >= m  # the padding never moves
-        hist = [[] for _ in range(m)]
-        loss0 = [None] * m
+        mine = [d for d in range(nd) if devs[d].process_index == me]
+        sl = {d: slice(d * k_dev, (d + 1) * k_dev) for d in mine}
+        t_start = time.perf_counter()
+        st = {}
+        for d in mine:
+            a = put(_take(args, full[sl[d]]), devs[d])
+            u = put(u0[full[sl[d]]], devs[d])
+            st[d] = [u, init(u, a), a]
+        hist = [[] for _ in range(size)]
+        loss0 = [None] * size
+        acc = np.zeros(size, int)
+        meta = np.zeros((size, 5))  # steps, accepted, loss_start, loss, result code
         t_compile = 0.0
         finished = []
+        owned = np.zeros(size, bool)
+        for d in mine:
+            owned[sl[d]] = True
         for k in range(1, max_steps + 1):
             t1 = time.perf_counter()
-            u, dyn, done_a, ok_a, loss_a, acc_a = step(u, dyn, a, shard(hold, mesh))
-            done_h, ok_h, loss_h, acc_h = gather((done_a, ok_a, loss_a, acc_a))
+            outs = {}
+            for d in mine:  # dispatched to every device before any result is read
+                u, dyn, a = st[d]
+                outs[d] = step(u, dyn, a, put(hold[sl[d]], devs[d]))
+            for d in mine:
+                u, dyn, done_a, ok_a, loss_a, acc_a = outs[d]
+                st[d][:2] = [u, dyn]
+                done_h, ok_h, loss_h, acc_h = (np.asarray(x) for x in (done_a, ok_a, loss_a, acc_a))
+                for j, i in enumerate(range(sl[d].start, sl[d].stop)):
+                    if hold[i]:
+                        continue
+                    loss = float(loss_h[j])
+                    done, ok = bool(done_h[j]), bool(ok_h[j])
+                    if k == 2:
+                        loss0[i] = loss
+                    hist[i].append(loss)
+                    if not done and k > 4 and hist[i][-4] - loss <= ftol * abs(loss):
+                        done = ok = True
+                    if done or k == max_steps:
+                        hold[i] = True
+                        finished.append(i)
+                        code = (1 if ok else 2) if done else 3
+                        meta[i] = (k, int(acc_h[j]), loss if loss0[i] is None else loss0[i],
+                                   loss, code)
             if k == 1:
                 t_compile = time.perf_counter() - t1
-            for i in range(m):
-                if hold[i]:
-                    continue
-                loss = float(loss_h[i])
-                done, ok = bool(done_h[i]), bool(ok_h[i])
-                if k == 2:
-                    loss0[i] = loss
-                hist[i].append(loss)
-                if not done and k > 4 and hist[i][-4] - loss <= ftol * abs(loss):
-                    done = ok = True
-                if done or k == max_steps:
-                    hold[i] = True
-                    finished.append(i)
-                    results[idx[i]] = ItemSolve(
-                        u=None, steps=k, accepted=int(acc_h[i]),
-                        loss_start=loss if loss0[i] is None else loss0[i], loss=loss,
-                        result=("converged" if ok else "failed") if done else "max_steps",
-                        seconds=0.0, compile_seconds=0.0)
-            if hold[:m].all():
+            if hold[owned].all():
                 break
-        u_h = gather(u)
+        u_blk = np.zeros((size,) + u0.shape[1:])
+        for d in mine:
+            u_blk[sl[d]] = np.asarray(st[d][0])
+        if jax.process_count() > 1:  # every process's fits, to every process
+            from jax.experimental import multihost_utils
+
+            u_all, meta_all, own_all = multihost_utils.process_allgather(
+                (u_blk, meta, owned.astype(float)))
+            pick = np.argmax(own_all, axis=0)
+            u_blk = u_all[pick, np.arange(size)]
+            meta = meta_all[pick, np.arange(size)]
         secs = time.perf_counter() - t_start - t_compile
         for i in range(m):
-            r = results[idx[i]]
-            r.u, r.seconds, r.compile_seconds = u_h[i], secs / m, t_compile / m
+            steps_i, acc_i, l0, l1, code = meta[i]
+            results[idx[i]] = ItemSolve(
+                u=u_blk[i], steps=int(steps_i), accepted=int(acc_i), loss_start=float(l0),
+                loss=float(l1), result={1: "converged", 2: "failed", 3: "max_steps"}[int(code)],
+                seconds=secs / m, compile_seconds=t_compile / m)
         if progress is not None:
             for i in finished:
-                progress(int(idx[i]), results[idx[i]])
+                if i < m:
+                    progress(int(idx[i]), results[idx[i]])
     return results
+
+
+class FitBatcher:
+    """Run many fit jobs, each ordinary sequential code given a fitter, with their solves
+    gathered into :func:`solve_many` batches.
+
+    ``run(jobs)`` calls every ``job(fitter)`` in its own thread with a stand-in for the
+    :class:`difstar._fit.Fitter`: its ``solve`` waits until every job still running has
+    asked for a solve (or finished), then all the waiting solves run as one sharded
+    batch (grouped by ``max_steps`` and ``ftol``); everything else (``predict``,
+    ``loss``, ``covariance``, …) is the real fitter's. So a recovery study runs the very
+    code of one fit, stage by stage, with the stages' solves of all its fits batched.
+    Returns the jobs' results in order; a job's exception is raised after all end.
+    """
+
+    def __init__(self, fitter, *, devices=None, chunk=None,
+                 progress: Callable[[str], None] | None = None):
+        self.fitter = fitter
+        self.devices, self.chunk, self.progress = devices, chunk, progress
+        self.plans: list[Plan] = []
+        self._cv = threading.Condition()
+        self._pending: dict[int, dict] = {}
+        self._live: set[int] = set()
+        self._round = 0
+
+    def _solve(self, job: int, u0, args, max_steps: int, ftol: float):
+        req = {"u": np.asarray(u0), "args": args, "key": (int(max_steps), float(ftol)),
+               "out": None}
+        with self._cv:
+            self._pending[job] = req
+            self._cv.notify_all()
+            while req["out"] is None:
+                self._cv.wait()
+        if isinstance(req["out"], BaseException):
+            raise req["out"]
+        return req["out"]
+
+    def run(self, jobs: list[Callable]):
+        from ._fit import SolveResult
+
+        results: list[Any] = [None] * len(jobs)
+        errors: list[BaseException | None] = [None] * len(jobs)
+        batcher = self
+
+        class Stand_in:
+            def __init__(self, job):
+                self._job = job
+
+            def solve(self, u0, args, *, max_steps=100, ftol=1e-6, progress=None):
+                r = batcher._solve(self._job, u0, args, max_steps, ftol)
+                if progress is not None:
+                    progress(r.steps, r.loss, float("nan"), True)
+                return SolveResult(u=jnp.asarray(r.u), steps=r.steps, accepted=r.accepted,
+                                   loss_start=r.loss_start, loss=r.loss, result=r.result,
+                                   seconds=r.seconds, compile_seconds=r.compile_seconds)
+
+            def __getattr__(self, name):
+                return getattr(batcher.fitter, name)
+
+        def body(i):
+            try:
+                results[i] = jobs[i](Stand_in(i))
+            except BaseException as exc:  # handed to the caller below
+                errors[i] = exc
+            finally:
+                with self._cv:
+                    self._live.discard(i)
+                    self._cv.notify_all()
+
+        self._live = set(range(len(jobs)))
+        threads = [threading.Thread(target=body, args=(i,), daemon=True)
+                   for i in range(len(jobs))]
+        for t in threads:
+            t.start()
+        while True:
+            with self._cv:
+                while self._live and len(self._pending) < len(self._live):
+                    self._cv.wait()
+                if not self._live:
+                    break
+                batch, self._pending = self._pending, {}
+            self._round += 1
+            groups: dict[tuple, list[int]] = {}
+            for job, req in sorted(batch.items()):
+                groups.setdefault(req["key"], []).append(job)
+            for (max_steps, ftol), members in groups.items():
+                try:
+                    out = self._solve_group([batch[j] for j in members], members,
+                                            max_steps, ftol)
+                except BaseException as exc:  # every waiting job raises it
+                    out = [exc] * len(members)
+                with self._cv:
+                    for j, o in zip(members, out):
+                        batch[j]["out"] = o
+                    self._cv.notify_all()
+        for t in threads:
+            t.join()
+        for e in errors:
+            if e is not None:
+                raise e
+        return results
+
+    def _solve_group(self, reqs, members, max_steps, ftol):
+        u0 = np.stack([r["u"] for r in reqs])
+        args = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]),
+                                      *[r["args"] for r in reqs])
+        rnd = self._round
+        say = self.progress
+
+        def each(i, r):
+            if say is not None:
+                say(f"solve round {rnd}: fit {members[i]} {r.result} after {r.steps} steps")
+
+        return solve_many(self.fitter, u0, args, devices=self.devices, max_steps=max_steps,
+                          ftol=ftol, chunk=self.chunk, progress=each, plan_out=self.plans)
 
 
 # ------------------------------------------------------------- spectral rendering
@@ -466,7 +625,7 @@ def simulate_spectral(camera, scene, grid, *, devices=None, chunk=None,
 
 
 __all__ = [
-    "AXIS", "ENV_DEVICES", "FILL", "ItemSolve", "Plan", "device_count", "device_memory",
+    "AXIS", "ENV_DEVICES", "FILL", "FitBatcher", "ItemSolve", "Plan", "device_count", "device_memory",
     "device_mesh", "gather", "init_distributed", "map_batch", "plan_chunks", "shard",
     "sharded_vmap", "simulate_spectral", "solve_many",
 ]

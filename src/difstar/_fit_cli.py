@@ -493,31 +493,74 @@ def perturbed_starts(man, model, rng) -> dict:
     return out
 
 
-def recovery_study(man, n_starts: int, seed: int) -> dict:
-    from difstar._fit import to_unconstrained
+def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None) -> dict:
+    """Fit from ``n_starts`` perturbed starts. With ``devices`` (or ``DIFSTAR_DEVICES``)
+    the fits run together, each the code of one fit (``fit_manifest``) with every
+    stage's solves of all fits batched and sharded over that many devices
+    (:class:`difstar._batch.FitBatcher`), ``chunk`` fits at a time at most (default:
+    as many as fit in memory); without, one after another."""
+    import os
+
+    from difstar._batch import ENV_DEVICES
+    from difstar._fit import Fitter, to_unconstrained
 
     rng = np.random.default_rng(seed)
-    rows = []
-    model = caps = fitter = None
     t_study = time.perf_counter()
-    for i in range(n_starts):
-        if model is None:
-            model, caps = prepare(man)
-        starts = perturbed_starts(man, model, rng)
-        u0 = to_unconstrained(model, starts)
-        t0 = time.perf_counter()
-        res, model, caps, fitter, u = fit_manifest(man, u0=u0, verbose=False, model=model,
-                                                   caps=caps, fitter=fitter)
-        tc = res["truth_comparison"]
-        rows.append({"start": i, "seconds": time.perf_counter() - t0,
-                     "steps": sum(s["steps"] for s in res["convergence"]["stages"]),
-                     "compile_seconds": res["timing_s"]["compile"],
-                     "comparison": tc, "values": {k: v["value"] for k, v in
-                                                  res["parameters"].items()}})
-        _log(_row_text(i, rows[-1]))
+
+    def row_of(i, res, t0):
+        return {"start": i, "seconds": time.perf_counter() - t0,
+                "steps": sum(s.get("steps", 0) for s in res["convergence"]["stages"]),
+                "compile_seconds": res["timing_s"]["compile"],
+                "comparison": res["truth_comparison"],
+                "values": {k: v["value"] for k, v in res["parameters"].items()}}
+
+    batched = devices is not None or bool(os.environ.get(ENV_DEVICES, "").strip())
+    extra = {}
+    if not batched:
+        rows = []
+        model = caps = fitter = None
+        for i in range(n_starts):
+            if model is None:
+                model, caps = prepare(man)
+            starts = perturbed_starts(man, model, rng)
+            u0 = to_unconstrained(model, starts)
+            t0 = time.perf_counter()
+            res, model, caps, fitter, u = fit_manifest(man, u0=u0, verbose=False, model=model,
+                                                       caps=caps, fitter=fitter)
+            rows.append(row_of(i, res, t0))
+            _log(_row_text(i, rows[-1]))
+    else:
+        from difstar._batch import FitBatcher, device_count, init_distributed
+
+        init_distributed()
+        n_dev = device_count(devices)
+        model, caps = prepare(man)
+        fitter = Fitter(model, method=man.solver["method"], rtol=man.solver["rtol"],
+                        atol=man.solver["atol"])
+        u0s = [to_unconstrained(model, perturbed_starts(man, model, rng))
+               for _ in range(n_starts)]
+        _log(f"difstar fit: {n_starts} fits together on {n_dev} device(s); their solves "
+             "run as one batch per stage")
+
+        def job(i):
+            def run(stand_in):
+                t0 = time.perf_counter()
+                res, *_ = fit_manifest(man, u0=u0s[i], verbose=False, model=model, caps=caps,
+                                       fitter=stand_in)
+                row = row_of(i, res, t0)
+                _log(_row_text(i, row))
+                return row
+            return run
+
+        batcher = FitBatcher(fitter, devices=n_dev, chunk=chunk,
+                             progress=lambda m: _log(f"difstar fit: {m}"))
+        rows = batcher.run([job(i) for i in range(n_starts)])
+        extra = {"devices": n_dev, "chunks": [
+            {"fits": p.chunk, "per_device": p.per_device, "item_bytes": p.item_bytes,
+             "free_bytes": p.free_bytes} for p in batcher.plans]}
     n_pass = sum(r["comparison"]["all_pass"] for r in rows)
     return {"n_starts": n_starts, "seed": seed, "perturbation": PERTURB, "n_pass": n_pass,
-            "seconds": time.perf_counter() - t_study, "rows": rows}
+            "seconds": time.perf_counter() - t_study, "rows": rows, **extra}
 
 
 def _row_text(i, row) -> str:
@@ -670,7 +713,7 @@ def _cmd_fit(a) -> int:
         out = Path(a.out) if a.out else man.folder / "recovery"
         check_output_free(out, overwrite=a.overwrite, inputs=inputs)
         with output_dir(out, overwrite=a.overwrite, inputs=inputs, command="fit") as tmp:
-            study = recovery_study(man, a.recovery_study, a.seed)
+            study = recovery_study(man, a.recovery_study, a.seed, devices=a.devices)
             table = study_table(study)
             write_json(tmp / "recovery.json", study)
             (tmp / "recovery.md").write_text(table + "\n")
@@ -733,6 +776,10 @@ def register(subparsers, name: str) -> None:
                        "0: a single fit)")
         p.add_argument("--seed", type=nonnegative_int, default=0,
                        help="seed of the recovery study")
+        p.add_argument("--devices", metavar="N",
+                       help="with --recovery-study: run the fits together, sharded over N "
+                       "devices (default: $DIFSTAR_DEVICES; unset: one fit after another); "
+                       "see docs/sharding.md")
         p.set_defaults(func=_cmd_fit)
     else:
         raise ValueError(f"difstar._fit_cli.register: unknown command {name!r}")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -41,7 +42,7 @@ def example_document(name: str, *, crop=None) -> dict:
 
 
 def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None,
-                inputs=()) -> dict:
+                inputs=(), devices=None) -> dict:
     """Predict one scene document and write the outputs to ``out`` (whole or not at all).
 
     Everything the user gave is checked before anything is computed: the scene (finite,
@@ -83,16 +84,32 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
         _log(f"difstar: FFT grid n = {grid.n}, oversample = {grid.oversample}, crop = "
              f"{grid.crop}, defocus phase {'on' if grid.use_defocus else 'off (Δz negligible)'}")
     with output_dir(out, overwrite=overwrite, inputs=inputs, command="predict") as tmp:
-        run = eqx.filter_jit(difstar.simulate)
-        t0 = time.perf_counter()
-        _log("difstar: compiling the chain ...")
-        compiled = run.lower(camera, scene, grid).compile()
-        t_compile = time.perf_counter() - t0
-        _log(f"difstar: compiled in {t_compile:.1f} s; running ...")
-        t0 = time.perf_counter()
-        pred = jax.block_until_ready(compiled(camera, scene, grid))
-        t_run = time.perf_counter() - t0
-        _log(f"difstar: ran in {t_run:.2f} s")
+        spectral = camera.sensor.spectral_weights is not None
+        if spectral and (devices is not None or os.environ.get("DIFSTAR_DEVICES", "").strip()):
+            # the wavelengths sharded over devices (docs/sharding.md)
+            from difstar._batch import simulate_spectral
+
+            k = camera.sensor.wavelengths.shape[1]
+            _log(f"difstar: {k} wavelengths per channel, sharded over the devices ...")
+            t0 = time.perf_counter()
+            pred = simulate_spectral(camera, scene, grid, devices=devices, progress=lambda d, n, s:
+                                     _log(f"difstar: wavelengths {d}/{n} done ({s:.1f} s)"))
+            t_compile, t_run = 0.0, time.perf_counter() - t0
+            _log(f"difstar: compiled and ran in {t_run:.2f} s")
+        else:
+            if devices is not None:
+                _log("difstar: --devices: one wavelength per channel (not spectral); "
+                     "nothing to shard, running on one device")
+            run = eqx.filter_jit(difstar.simulate)
+            t0 = time.perf_counter()
+            _log("difstar: compiling the chain ...")
+            compiled = run.lower(camera, scene, grid).compile()
+            t_compile = time.perf_counter() - t0
+            _log(f"difstar: compiled in {t_compile:.1f} s; running ...")
+            t0 = time.perf_counter()
+            pred = jax.block_until_ready(compiled(camera, scene, grid))
+            t_run = time.perf_counter() - t0
+            _log(f"difstar: ran in {t_run:.2f} s")
         for name in ("psf", "cfa", "srgb"):
             a = getattr(pred, name)
             if a is not None and not np.all(np.isfinite(np.asarray(a))):
@@ -173,7 +190,14 @@ def _cmd_predict(a) -> int:
         doc = read_json(a.scene, what="scene file")
         source = str(a.scene)
     check_output_free(out, overwrite=a.overwrite, inputs=inputs)
-    run_predict(doc, source=source, out=out, overwrite=a.overwrite, crop=crop, inputs=inputs)
+    devices = None
+    if a.devices is not None:
+        from difstar._batch import device_count, init_distributed
+
+        init_distributed()
+        devices = device_count(a.devices)
+    run_predict(doc, source=source, out=out, overwrite=a.overwrite, crop=crop, inputs=inputs,
+                devices=devices)
     return 0
 
 
@@ -221,6 +245,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace --out if it is a folder difstar made (its .difstar-output "
                    "marker lists every file in it); never a folder with other files, never "
                    "an input")
+    p.add_argument("--devices", metavar="N",
+                   help="spectral scenes: shard the wavelengths over N devices (default: "
+                   "$DIFSTAR_DEVICES, else one device); see docs/sharding.md")
     p.set_defaults(func=_cmd_predict)
 
     p = sub.add_parser("example", help="print a built-in scene as JSON", formatter_class=_Formatter)
