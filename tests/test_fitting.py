@@ -305,3 +305,24 @@ def test_fit_from_a_raw_mosaic_of_the_independent_star(tmp_path, pattern):
     assert 0.5 < res.chi2_dof < 2.0  # the noise model is right
     with pytest.raises(FitInputError, match="channel"):
         FitData.from_raw(path, channel="Y", gain_e_per_dn=gain, read_noise_dn=read)
+
+
+def test_two_captures_share_the_pupil_and_keep_their_own_centres(synthetic):
+    """Two exposures of the independent star (other centre, other flux) fitted together:
+    one rotation for both, a centre and flux each; the joint rotation is better
+    constrained than either capture's alone."""
+    data1, sigma = synthetic
+    true2 = dict(TRUE, x0=-0.4, y0=0.35, flux=2500.0)
+    clean2 = _numpy_star(**true2)
+    rng = np.random.default_rng(9)
+    data2 = FitData.from_array(clean2 + rng.normal(0, sigma, clean2.shape), sigma=sigma)
+    res = fit(_model(), [data1, data2], max_steps=30)
+    v, e = res.values, res.errors
+    assert "x0@0" in res.free and "x0@1" in res.free and "x0" not in res.free
+    for i, t in enumerate((TRUE, true2)):
+        assert abs(v[f"x0@{i}"] - t["x0"]) < 0.02 and abs(v[f"y0@{i}"] - t["y0"]) < 0.02
+        assert abs(v[f"flux@{i}"] / t["flux"] - 1) < 0.01
+    assert isinstance(res.model_image, list) and len(res.residual) == 2
+    alone = fit(_model(), data1, max_steps=30)
+    assert e["rotation"] < alone.errors["rotation"]
+    assert abs(v["rotation"] - TRUE["rotation"]) < max(4 * e["rotation"], 0.5)

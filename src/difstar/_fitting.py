@@ -462,6 +462,41 @@ class ImageModel:
                 raise FitInputError(f"ImageModel: z{j} = {p.value} (bounds {p.bounds}) is "
                                     "not in nm RMS (over 10 µm).")
         self._plans = {}
+        self.per_capture: tuple[str, ...] = ()
+
+    def for_captures(self, per_capture: Sequence[str], n: int) -> ImageModel:
+        """A copy for ``n`` captures fitted together: each name in ``per_capture`` (e.g.
+        ``x0``, ``y0``, ``flux``, ``background``) gets one parameter per capture,
+        ``name@i`` (a copy of the original's value, bounds and free flag); every other
+        parameter (pupil, rotation, wavefront, detector) is shared by all captures."""
+        unknown = set(per_capture) - set(self.params)
+        if unknown:
+            raise FitInputError(f"per_capture: unknown parameters {sorted(unknown)}.")
+        m = object.__new__(ImageModel)
+        m.__dict__ = dict(self.__dict__)
+        m.params = {}
+        for k, p in self.params.items():
+            if k in per_capture:
+                m.params[k] = dataclasses.replace(p, free=False)
+                for i in range(n):
+                    m.params[f"{k}@{i}"] = dataclasses.replace(p)
+            else:
+                m.params[k] = dataclasses.replace(p)
+        m.per_capture = tuple(per_capture)
+        return m
+
+    def capture_values(self, v: Mapping[str, Any], i: int) -> dict:
+        """The values capture ``i`` sees: its own ``name@i`` for the per-capture names."""
+        if not self.per_capture:
+            return dict(v)
+        return {**v, **{k: v[f"{k}@{i}"] for k in self.per_capture}}
+
+    def expand(self, names: Sequence[str], n: int) -> list[str]:
+        """Stage names with each per-capture name replaced by its ``name@i``."""
+        out = []
+        for k in names:
+            out += [f"{k}@{i}" for i in range(n)] if k in self.per_capture else [k]
+        return out
 
     # names
     @property
@@ -609,10 +644,10 @@ class FitResult:
     status: str
     converged: bool
     steps: int
-    model_image: np.ndarray
-    residual: np.ndarray
-    data: np.ndarray
-    mask: np.ndarray
+    model_image: np.ndarray | list
+    residual: np.ndarray | list
+    data: np.ndarray | list
+    mask: np.ndarray | list
     warnings: list
     wall_time: float
     stages: list
@@ -623,9 +658,12 @@ class FitResult:
 
     @property
     def residual_rms_peak(self) -> float:
-        """RMS of the residual over the used pixels relative to the data's peak."""
-        r = self.residual[self.mask]
-        return float(np.sqrt(np.mean(r**2)) / np.max(self.data[self.mask]))
+        """RMS of the residual over the used pixels relative to the data's peak (for
+        several captures: the largest of theirs)."""
+        if isinstance(self.residual, list):
+            return max(_rms_peak(r, d, m) for r, d, m in zip(self.residual, self.data,
+                                                             self.mask))
+        return _rms_peak(self.residual, self.data, self.mask)
 
     def summary(self) -> str:
         lines = [f"status: {self.status} ({self.steps} steps, {self.wall_time:.1f} s)",
@@ -635,6 +673,11 @@ class FitResult:
             lines.append(f"  {k:14s} = {self.values[k]:.6g} ± {self.errors[k]:.3g}")
         lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
+
+
+def _rms_peak(residual, data, mask) -> float:
+    r = residual[mask]
+    return float(np.sqrt(np.mean(r**2)) / np.max(data[mask]))
 
 
 # --- fitting ----------------------------------------------------------------------------
@@ -720,20 +763,30 @@ class SpikeProfiles:
         return (pm / sums[self.window] - self.data_profile) * self.wgt
 
 
-def _residual_fn(model: ImageModel, data: FitData, target):
-    """(values → residual vector, values → (residual, model image)) for ``model`` on
-    ``data``'s window."""
-    shape = data.image.shape
-    plan = model.plan((shape[0] + 2 * model.pad, shape[1] + 2 * model.pad))
+def _residual_fn(model: ImageModel, data, target):
+    """values → (residual vector, [model image of each capture]) for ``model`` on each
+    of ``data``'s windows (a FitData or a list of them, one ``target`` each)."""
+    datas, targets = _as_list(data), _as_list(target)
+    plans = [model.plan((d.image.shape[0] + 2 * model.pad, d.image.shape[1] + 2 * model.pad))
+             for d in datas]
 
     def res(v):
-        m = model.image(v, shape, plan)
-        return target(m, v), m
+        rs, ms = [], []
+        for i, (d, t, plan) in enumerate(zip(datas, targets, plans)):
+            vi = model.capture_values(v, i)
+            m = model.image(vi, d.image.shape, plan)
+            rs.append(t(m, vi))
+            ms.append(m)
+        return (rs[0] if len(rs) == 1 else jnp.concatenate(rs)), ms
 
     return res
 
 
-def _one_fit(model: ImageModel, data: FitData, target, *, max_steps: int, rtol: float,
+def _as_list(x):
+    return list(x) if isinstance(x, (list, tuple)) else [x]
+
+
+def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
              atol: float, ftol: float = 1e-6):
     from ._lm import LMStepper
 
@@ -767,10 +820,11 @@ def _one_fit(model: ImageModel, data: FitData, target, *, max_steps: int, rtol: 
     return vals, status, ok, sol.steps
 
 
-def _errors(model: ImageModel, data: FitData, values: Mapping[str, float], target=None):
+def _errors(model: ImageModel, data, values: Mapping[str, float], target=None):
     """Gauss–Newton covariance in the physical parameters at ``values``, scaled by
     χ²/dof when that exceeds 1 (always, for spike profiles: their σ are relative)."""
-    target = _PixelTarget(data) if target is None else target
+    if target is None:
+        target = [_PixelTarget(d) for d in _as_list(data)]
     free = model.free
     base = {k: jnp.asarray(v, float) for k, v in values.items()}
     resv = _residual_fn(model, data, target)
@@ -784,9 +838,10 @@ def _errors(model: ImageModel, data: FitData, values: Mapping[str, float], targe
     x0 = jnp.asarray([values[k] for k in free], float)
     jac = np.asarray(jax.jit(jax.jacfwd(lambda x: res(x)[0]))(x0))
     r, m = jax.jit(res)(x0)
-    r, m = np.asarray(r), np.asarray(m)
+    r, m = np.asarray(r), [np.asarray(mi) for mi in m]
     chi2 = float(r @ r)
-    dof = target.n - len(free)
+    dof = sum(t.n for t in _as_list(target)) - len(free)
+    kinds = {t.kind for t in _as_list(target)}
     jtj = jac.T @ jac
     colnorm = np.sqrt(np.diag(jtj))
     msgs = []
@@ -798,7 +853,7 @@ def _errors(model: ImageModel, data: FitData, values: Mapping[str, float], targe
     cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * jtj * dscale[None, :],
                                            rcond=1e-12) * dscale[None, :]
     red = chi2 / max(dof, 1)
-    cov = cov * (red if target.kind == "spikes" else max(red, 1.0))
+    cov = cov * (max(red, 1.0) if kinds == {"pixels"} else red)
     err = np.sqrt(np.maximum(np.diag(cov), 0))
     errors = {}
     for i, k in enumerate(free):
@@ -815,10 +870,16 @@ def _errors(model: ImageModel, data: FitData, values: Mapping[str, float], targe
     return errors, cov, chi2, dof, m, msgs
 
 
-def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = None,
+def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         starts: Mapping[str, Sequence[float]] | None = None, max_steps: int = 100,
-        rtol: float = 1e-6, atol: float = 1e-8, verbose: bool = False) -> FitResult:
+        rtol: float = 1e-6, atol: float = 1e-8, verbose: bool = False,
+        per_capture: Sequence[str] | None = None) -> FitResult:
     """Fit ``model`` to ``data`` by Levenberg–Marquardt.
+
+    ``data``: a :class:`FitData`, or a list of them (captures of the same star:
+    exposures, dithers, frames) fitted together; then each name in ``per_capture``
+    (default ``x0``, ``y0``, ``flux``, ``background``) has one value per capture,
+    ``name@i`` in the result, and every other parameter is shared.
 
     ``stages``: coarse to fine, each a dict with
 
@@ -842,13 +903,23 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
     end for every free parameter on the pixels; those of parameters last fitted in a
     spikes stage come from that stage. Default: one stage, all free, whole image.
     ``starts``: name → start values tried in the first stage (multi-start; the lowest χ²
-    goes on). Raises :class:`FitInputError` for inputs that cannot be right.
+    goes on). Raises :class:`FitInputError` for inputs that cannot be right. For several
+    captures the result's images (``model_image``, ``residual``, ``data``, ``mask``)
+    are lists, one per capture.
     """
     t0 = time.perf_counter()
+    datas = _as_list(data)
+    n_cap = len(datas)
+    if n_cap == 0:
+        raise FitInputError("fit: no data (an empty list of captures).")
+    for i, d in enumerate(datas):
+        if d.image.shape[0] < 4 or d.image.shape[1] < 4:
+            raise FitInputError(f"fit: capture {i}'s window is smaller than 4 × 4 pixels.")
+    if n_cap > 1 or per_capture:
+        per = ("x0", "y0", "flux", "background") if per_capture is None else tuple(per_capture)
+        model = model.for_captures(per, n_cap)
     if not model.free:
         raise FitInputError("fit: no free parameter (set free=true on at least one).")
-    if data.image.shape[0] < 4 or data.image.shape[1] < 4:
-        raise FitInputError("fit: the data window is smaller than 4 × 4 pixels.")
     stages = list(stages or [{"free": "all", "half": None}])
     values = model.values()
     log = []
@@ -856,32 +927,40 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
     spike_errors = {}
     status, ok, steps = "converged", True, 0
     for si, st in enumerate(stages):
-        names = model.free if st.get("free", "all") == "all" else list(st["free"])
-        names = [k for k in names if k not in set(st.get("fix", ()))]
+        names = model.free if st.get("free", "all") == "all" else model.expand(st["free"], n_cap)
+        fix = set(model.expand(st.get("fix", ()), n_cap))
+        names = [k for k in names if k not in fix]
         bad = set(names) - set(model.free)
         if bad:
             raise FitInputError(f"fit: stage {si} frees {sorted(bad)}, which are not free "
                                 "parameters of the model.")
         if st.get("noise_from_residuals") is not None:
-            mimg = np.asarray(_residual_fn(model.with_values(values), data,
-                                           _PixelTarget(data))(
-                {k: jnp.asarray(x, float) for k, x in values.items()})[1])
-            noise, data = noise_from_residuals(data, mimg, values["background"],
-                                               **dict(st["noise_from_residuals"]))
-            log.append({"stage": si, "noise": {"read": noise.read, "gain": noise.gain,
-                                               "floor": noise.floor}})
+            v = {k: jnp.asarray(x, float) for k, x in values.items()}
+            mimgs = _residual_fn(model.with_values(values), datas,
+                                 [_PixelTarget(d) for d in datas])(v)[1]
+            noises = []
+            for i, mi in enumerate(mimgs):
+                bg = model.capture_values(values, i)["background"]
+                nz, datas[i] = noise_from_residuals(datas[i], np.asarray(mi), bg,
+                                                    **dict(st["noise_from_residuals"]))
+                noises.append({"read": nz.read, "gain": nz.gain, "floor": nz.floor})
+            log.append({"stage": si, "noise": noises[0] if n_cap == 1 else noises})
             if verbose:
-                print(f"stage {si}: noise from the residuals: read {noise.read:.4g}, gain "
-                      f"{noise.gain:.4g}, floor {noise.floor:g}", flush=True)
+                for nz in noises:
+                    print(f"stage {si}: noise from the residuals: read {nz['read']:.4g}, "
+                          f"gain {nz['gain']:.4g}, floor {nz['floor']:g}", flush=True)
         half = st.get("half")
-        d = data if half is None else data.cropped(int(half))
+        ds = [d if half is None else d.cropped(int(half)) for d in datas]
         if st.get("annulus") is not None:
-            d = d.annulus(*st["annulus"])
-        target = _PixelTarget(d)
+            ds = [d.annulus(*st["annulus"]) for d in ds]
         if st.get("spikes") is not None:
-            target = spike_target(d, values, **dict(st["spikes"]))
+            targets = [spike_target(d, model.capture_values(values, i), **dict(st["spikes"]))
+                       for i, d in enumerate(ds)]
+        else:
+            targets = [_PixelTarget(d) for d in ds]
+        kind = targets[0].kind
         if st.get("scan") is not None:
-            values = _scan(model, d, target, values, **dict(st["scan"]))
+            values = _scan(model, ds, targets, values, **dict(st["scan"]))
             log.append({"stage": si, "scan": dict(st["scan"]),
                         "best": values[st["scan"]["name"]]})
             if verbose:
@@ -896,39 +975,45 @@ def fit(model: ImageModel, data: FitData, *, stages: Sequence[Mapping] | None = 
         for tr in tries:
             m = model.with_values({**values, **tr}, free=names)
             ts = time.perf_counter()
-            vals, status, ok, n = _one_fit(m, d, target, max_steps=int(
+            vals, status, ok, n = _one_fit(m, ds, targets, max_steps=int(
                 st.get("max_steps", max_steps)), rtol=float(st.get("rtol", rtol)), atol=atol)
-            chi2 = _chi2(m, d, vals, target)
+            chi2 = _chi2(m, ds, vals, targets)
             entry = {"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
-                     "kind": target.kind, "status": status, "steps": n,
+                     "kind": kind, "status": status, "steps": n,
                      "seconds": time.perf_counter() - ts}
             log.append(entry)
             if verbose:
-                print(f"stage {si} ({target.kind}) start {tr}: chi2 {chi2:.6g} {status} "
+                print(f"stage {si} ({kind}) start {tr}: chi2 {chi2:.6g} {status} "
                       f"{n} steps {time.perf_counter() - ts:.1f} s", flush=True)
             if best is None or chi2 < best[0]:
                 best = (chi2, vals, status, ok, n, m, entry)
         _, values, status, ok, steps, m, entry = best
         for k in names:
             last_stage[k] = si
-        if target.kind != "pixels":
-            errs = _errors(m, d, values, target)[0]
+        if kind != "pixels":
+            errs = _errors(m, ds, values, targets)[0]
             entry["errors"] = errs
-            entry["directions"] = target.directions
+            entry["directions"] = [t.directions for t in targets] if n_cap > 1 \
+                else targets[0].directions
             spike_errors[si] = errs
     final = model.with_values(values)
-    errors, cov, chi2, dof, mimg, msgs = _errors(final, data, values)
+    errors, cov, chi2, dof, mimgs, msgs = _errors(final, datas, values)
     for k in errors:
         if last_stage.get(k) in spike_errors:
             errors[k] = spike_errors[last_stage[k]][k]
-    res = np.where(data.mask, data.image - mimg, 0.0)
+    resids = [np.where(d.mask, d.image - mi, 0.0) for d, mi in zip(datas, mimgs)]
+
+    def one(xs):
+        return xs[0] if n_cap == 1 else xs
+
     return FitResult(values=values, errors=errors, free=final.free, covariance=cov, chi2=chi2,
-                     dof=dof, status=status, converged=ok, steps=steps, model_image=mimg,
-                     residual=res, data=data.image, mask=data.mask, warnings=msgs,
-                     wall_time=time.perf_counter() - t0, stages=log)
+                     dof=dof, status=status, converged=ok, steps=steps,
+                     model_image=one(mimgs), residual=one(resids),
+                     data=one([d.image for d in datas]), mask=one([d.mask for d in datas]),
+                     warnings=msgs, wall_time=time.perf_counter() - t0, stages=log)
 
 
-def _scan(model: ImageModel, data: FitData, target, values, *, name: str, half_range,
+def _scan(model: ImageModel, data, target, values, *, name: str, half_range,
           step) -> dict:
     """``values`` with ``name`` moved to the lowest χ² of ``target`` on a grid of
     ``step`` over ± ``half_range`` about its value (inside its bounds): a coarse search
@@ -998,7 +1083,8 @@ def perturbed_starts(model: ImageModel, n, *, rel=PERTURB, seed=0) -> list[dict[
 
 
 def _chi2(model, data, values, target=None):
-    target = _PixelTarget(data) if target is None else target
+    if target is None:
+        target = [_PixelTarget(d) for d in _as_list(data)]
     v = {k: jnp.asarray(x, float) for k, x in values.items()}
     r = np.asarray(_residual_fn(model, data, target)(v)[0])
     return float(np.sum(r**2))
