@@ -5,10 +5,12 @@ difstar fit (RAW captures and star images).
 function ``fn(u, args)`` (a pytree of arrays) once; :meth:`LMStepper.solve` runs steps
 from any start ``u0`` and data ``args`` of the same shapes, reporting progress from
 Python after each, and stops when optimistix's own test passes (changes of u and of the
-residuals below atol + rtol·size) or when the loss has fallen by less than ``ftol``
-(relative) over the last three steps. The residual test alone asks every one of 10⁴–10⁵
-residuals to settle, and after the minimum is reached the solver can go on rejecting
-ever smaller steps without it ever passing.
+residuals below atol + rtol·size), when the loss has fallen by less than ``ftol``
+(relative) over the last three accepted steps, or after :data:`MAX_REJECTED` rejected
+steps in a row once one was accepted. The residual test alone asks every one of
+10⁴–10⁵ residuals to settle, and after the minimum is reached the solver can go on
+rejecting ever smaller steps without it ever passing; counting only accepted steps
+keeps a solve that starts by shrinking its trust region from stopping at its start.
 """
 
 from __future__ import annotations
@@ -22,6 +24,10 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
+
+#: Consecutive rejected steps after which a solve that has moved counts as converged:
+#: the trust region has shrunk by about 2^10 and no nearby point is lower.
+MAX_REJECTED = 10
 
 
 @dataclasses.dataclass
@@ -81,7 +87,7 @@ class LMStepper:
         loss = float("nan")
         t_compile = 0.0
         done = ok = False
-        k = acc = 0
+        k = acc = rejected = 0
         history = []
         t0 = time.perf_counter()
         for k in range(1, max_steps + 1):
@@ -90,11 +96,17 @@ class LMStepper:
             loss = float(loss_a)
             if k == 1:
                 t_compile = time.perf_counter() - t1
-            done, ok, acc = bool(done_a), bool(ok_a), int(acc_a)
+            done, ok = bool(done_a), bool(ok_a)
             if k == 2:  # the first step only evaluates the start
                 loss0 = loss
-            history.append(loss)
-            if not done and k > 4 and history[-4] - loss <= ftol * abs(loss):
+            if int(acc_a) > acc:  # an accepted step: the loss moved to a new point
+                history.append(loss)
+                rejected = 0
+            else:
+                rejected += 1
+            acc = int(acc_a)
+            plateau = len(history) >= 4 and history[-4] - loss <= ftol * abs(loss)
+            if not done and (plateau or (history and rejected >= MAX_REJECTED)):
                 done = ok = True
             if progress is not None:
                 progress(k, loss, float(size), done)
