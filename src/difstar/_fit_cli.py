@@ -232,7 +232,51 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = 
         if verbose:
             _log(f"difstar fit: stage {len(stages)} {res.result} after {res.steps} steps, "
                  f"{res.seconds:.1f} s (+ {res.compile_seconds:.1f} s compile)")
+    u, tries = restart_response_curves(fitter, model, u, args, solver, verbose=verbose)
+    if tries:
+        stages.append({"label": "response-curve restarts", "tries": tries})
     return u, stages, args
+
+
+#: Restarts of each channel's response-curve parameters, as factors of the value reached:
+#: the knee and toe of a channel whose captures barely reach its shoulder are weakly
+#: constrained, and Levenberg–Marquardt can stop in a shallow basin (a knee half or
+#: twice its true value) that the other channels' data do not pull it out of.
+RESTART_FACTORS = (0.5, 2.0)
+
+
+def restart_response_curves(fitter, model, u, args, solver: dict, *, verbose: bool = True):
+    """From the converged ``u``, re-solve with each channel's knee (then toe) moved by
+    each of :data:`RESTART_FACTORS` (inside its bounds), everything else as reached;
+    keep any start that ends at a lower loss. Returns (u, tries)."""
+    from difstar._fit import from_unconstrained, to_unconstrained
+
+    best = fitter.loss(u, args)
+    tries = []
+    for name in ("knee", "toe"):
+        spec = model.param.get(name)
+        if spec is None or not spec.free:
+            continue
+        for ch in range(spec.size):
+            for f in RESTART_FACTORS:
+                vals = {k: np.asarray(v) for k, v in from_unconstrained(model, u).items()}
+                x = vals[name].copy()
+                span = spec.hi[ch] - spec.lo[ch]
+                x[ch] = np.clip(x[ch] * f, spec.lo[ch] + 1e-3 * span, spec.hi[ch] - 1e-3 * span)
+                vals[name] = x
+                res = fitter.solve(to_unconstrained(model, vals), args,
+                                   max_steps=int(solver.get("max_steps", 100)),
+                                   ftol=float(solver.get("ftol", 1e-6)))
+                better = res.loss < best * (1 - 1e-9)
+                tries.append({"parameter": f"{name}[{ch}]", "factor": f, "loss": res.loss,
+                              "kept": bool(better), "steps": res.steps})
+                if verbose:
+                    _log(f"difstar fit: restart {name}[{'RGB'[ch] if spec.size == 3 else ch}] "
+                         f"× {f:g}: loss {res.loss:.7g} "
+                         f"({'lower: kept' if better else 'not lower'})")
+                if better:
+                    u, best = res.u, res.loss
+    return u, tries
 
 
 def _values(model, u) -> dict:
