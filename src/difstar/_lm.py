@@ -30,6 +30,31 @@ import optimistix as optx
 MAX_REJECTED = 10
 
 
+class StopRule:
+    """The loss-based half of the stopping rule, for one solve: call :meth:`update`
+    after every step with the loss of the last accepted point and the solver's count of
+    accepted steps; it says whether to stop (a fall below ``ftol``, relative, over the
+    last three accepted steps, or :data:`MAX_REJECTED` rejections in a row once a step
+    was accepted)."""
+
+    def __init__(self, ftol: float):
+        self.ftol = float(ftol)
+        self.history: list[float] = []
+        self.accepted = 0
+        self.rejected = 0
+
+    def update(self, loss: float, accepted: int) -> bool:
+        if accepted > self.accepted:  # an accepted step: the loss moved to a new point
+            self.history.append(loss)
+            self.rejected = 0
+        else:
+            self.rejected += 1
+        self.accepted = accepted
+        h = self.history
+        plateau = len(h) >= 4 and h[-4] - loss <= self.ftol * abs(loss)
+        return plateau or (bool(h) and self.rejected >= MAX_REJECTED)
+
+
 @dataclasses.dataclass
 class SolveResult:
     u: jax.Array
@@ -87,8 +112,8 @@ class LMStepper:
         loss = float("nan")
         t_compile = 0.0
         done = ok = False
-        k = acc = rejected = 0
-        history = []
+        k = acc = 0
+        rule = StopRule(ftol)
         t0 = time.perf_counter()
         for k in range(1, max_steps + 1):
             t1 = time.perf_counter()
@@ -99,14 +124,8 @@ class LMStepper:
             done, ok = bool(done_a), bool(ok_a)
             if k == 2:  # the first step only evaluates the start
                 loss0 = loss
-            if int(acc_a) > acc:  # an accepted step: the loss moved to a new point
-                history.append(loss)
-                rejected = 0
-            else:
-                rejected += 1
             acc = int(acc_a)
-            plateau = len(history) >= 4 and history[-4] - loss <= ftol * abs(loss)
-            if not done and (plateau or (history and rejected >= MAX_REJECTED)):
+            if rule.update(loss, acc) and not done:
                 done = ok = True
             if progress is not None:
                 progress(k, loss, float(size), done)

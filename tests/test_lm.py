@@ -1,0 +1,41 @@
+"""The one solver loop (difstar._lm): its stopping rule, and a solve to a known
+minimum."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from difstar._lm import MAX_REJECTED, LMStepper, StopRule
+
+
+def test_rejections_at_the_start_do_not_stop_a_solve():
+    rule = StopRule(1e-6)
+    assert not rule.update(10.0, 1)  # the start, accepted
+    for _ in range(5):  # the trust region shrinks: rejected, the loss stays
+        assert not rule.update(10.0, 1)
+    assert not rule.update(5.0, 2)
+
+
+def test_plateau_over_accepted_steps_and_a_run_of_rejections_stop():
+    rule = StopRule(1e-6)
+    stops = [rule.update(loss, k) for k, loss in
+             enumerate([10.0, 5.0, 5.0 - 1e-7, 5.0 - 2e-7, 5.0 - 3e-7], start=1)]
+    assert stops[-1] and not any(stops[:-1])
+    rule = StopRule(1e-6)
+    rule.update(10.0, 1)
+    rule.update(5.0, 2)
+    stops = [rule.update(5.0, 2) for _ in range(MAX_REJECTED)]
+    assert stops[-1] and not any(stops[:-1])
+
+
+def test_solve_reaches_the_rosenbrock_minimum():
+    jax.config.update("jax_enable_x64", True)
+
+    def fn(u, _):
+        return jnp.stack([10.0 * (u[1] - u[0] ** 2), 1.0 - u[0]])
+
+    res = LMStepper(fn, rtol=1e-10, atol=1e-12).solve(jnp.array([-1.2, 1.0]), None,
+                                                         max_steps=200, ftol=1e-14)
+    assert res.result == "converged"
+    np.testing.assert_allclose(np.asarray(res.u), [1.0, 1.0], atol=1e-6)
+    assert res.loss < 1e-12 and res.loss_start > 1.0
