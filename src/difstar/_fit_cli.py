@@ -198,6 +198,24 @@ def prepare(man):
 
 # ------------------------------------------------------------------------------ fit
 
+#: Seconds from the command's start to the end of its first solver step (once per process).
+FIRST_STEP: dict = {}
+
+
+def seconds_since_process_start() -> float | None:
+    """Seconds since this process started (Linux /proc; None elsewhere)."""
+    import os
+
+    try:
+        with open("/proc/self/stat") as f:
+            start = float(f.read().rsplit(")", 1)[1].split()[19])  # field 22, in ticks
+        with open("/proc/uptime") as f:
+            up = float(f.read().split()[0])
+        return up - start / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = True):
     """Stage 1: the response curves (toe, knee) held at their starts, σ from the
     observed values; stage 2 (repeated ``reweight`` times): everything free, σ from the
@@ -218,6 +236,11 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = 
             _log(f"{'iter':>6} {'loss':>14} {'step size':>11}")
 
         def progress(k, loss, size, done):
+            if k == 1 and not stages and "first_step" not in FIRST_STEP:
+                FIRST_STEP["first_step"] = seconds_since_process_start()
+                if verbose and FIRST_STEP["first_step"] is not None:
+                    _log(f"difstar fit: first step done {FIRST_STEP['first_step']:.1f} s "
+                         "after the command started")
             if verbose:
                 _log(f"{k:>6d} {loss:>14.6g} {size:>11.3g}" + ("  (done)" if done else ""))
 
@@ -391,6 +414,7 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
                                    "gn": "optimistix.GaussNewton"}[fitter.method],
                         "stages": stages, **diag},
         "timing_s": {"total": time.perf_counter() - t_all, "covariance": t_cov,
+                     "first_step_since_start": FIRST_STEP.get("first_step"),
                      "solve": sum(s["seconds"] for s in stages),
                      "compile": sum(s["compile_seconds"] for s in stages)},
         "jax": {"version": jax.__version__, "backend": jax.default_backend(),
