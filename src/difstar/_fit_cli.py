@@ -255,9 +255,14 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = 
         if verbose:
             _log(f"difstar fit: stage {len(stages)} {res.result} after {res.steps} steps, "
                  f"{res.seconds:.1f} s (+ {res.compile_seconds:.1f} s compile)")
+    t0 = time.perf_counter()
     u, tries = restart_response_curves(fitter, model, u, args, solver, verbose=verbose)
     if tries:
-        stages.append({"label": "response-curve restarts", "tries": tries})
+        kept = [t for t in tries if t["kept"]]
+        stages.append({"label": "response-curve restarts", "tries": tries,
+                       "steps": sum(t["steps"] for t in tries),
+                       "result": f"{len(kept)} of {len(tries)} kept",
+                       "seconds": time.perf_counter() - t0, "compile_seconds": 0.0})
     return u, stages, args
 
 
