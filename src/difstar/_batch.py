@@ -3,8 +3,8 @@
 One code path for one device, several devices of one host and several hosts: the batch's
 leading axis is split over a one-axis mesh (``"batch"``) of the devices JAX sees
 (``jax.devices()``: every host's, once :func:`init_distributed` has joined them), and each
-device runs ``jax.vmap(fn)`` over its own slice (``jax.jit`` with ``NamedSharding(mesh,
-P("batch"))`` in and out; the items are independent, so no device needs another's). The host side pads the batch to a multiple
+device runs ``jax.vmap(fn)`` over its own slice (``jax.shard_map`` with ``P("batch")`` in
+and out; the items are independent, so no device needs another's). The host side pads the batch to a multiple
 of the device count, splits it into chunks that fit the devices' memory, reports progress
 per chunk and strips the padding. The jitted core is ``fn`` itself and stays pure.
 
@@ -199,13 +199,12 @@ def gather(tree):
 
 
 def sharded_vmap(fn, mesh: Mesh):
-    """``jit(vmap(fn))`` with every argument and result split over the mesh's
-    ``"batch"`` axis (array pytrees in and out): XLA's SPMD partitioner gives each device
-    its slice of the items, and as the items are independent each device maps ``fn`` over
-    its own (``jax.shard_map`` would say so explicitly, but its check of which values
-    vary across devices refuses the solvers' loops whose carry starts unbatched)."""
-    sh = NamedSharding(mesh, P(AXIS))
-    return jax.jit(jax.vmap(fn), in_shardings=sh, out_shardings=sh)
+    """``jit(shard_map(vmap(fn)))``: each device maps ``fn`` over its own slice of every
+    argument's leading axis (array pytrees in and out), one program, no collective: a
+    mesh-wide ``jit`` would leave the split to XLA's partitioner, which can gather the
+    batch around loops (seen in the fit's solver step)."""
+    return jax.jit(jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=P(AXIS),
+                                 out_specs=P(AXIS), check_vma=False))
 
 
 def _per_device_bytes(compiled) -> int | None:

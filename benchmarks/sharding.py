@@ -1,0 +1,124 @@
+"""Sharding over devices (issue 17): scaling from 1 to 2 host CPU devices.
+
+Each measurement runs in a fresh child Python with ``XLA_FLAGS`` giving it N host CPU
+devices (one thread each: ``--xla_cpu_multi_thread_eigen=false
+intra_op_parallelism_threads=1``, so that N devices use N cores and nothing else), and
+times, after a first run that compiles:
+
+- spectral render: ``difstar._batch.simulate_spectral`` of the paper's focused scene in
+  the spectral model (``--wavelengths`` per channel, every 5 nm-free Gauss rule of
+  ``choose_wavelengths`` padded to that count by repetition), ``--crop`` pixels;
+- fits: ``difstar._batch.solve_many`` of ``--fits`` small fits (the tiny synthetic model
+  of ``tests/test_fit.py``: 64² crop, 2 captures, 7 free values) for ``--steps`` solver
+  steps each.
+
+Efficiency = t1 / (N · tN); cost per item = tN / items. Prints a Markdown table.
+
+    python benchmarks/sharding.py [--devices 1 2] [--crop 64] [--wavelengths 8] [--fits 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+
+CHILD = r'''
+import json, sys, time
+import jax, numpy as np
+jax.config.update("jax_enable_x64", True)
+import difstar
+from difstar import _batch as B
+cfg = json.loads(sys.argv[1])
+n = jax.device_count()
+out = {"devices": n, "cpus": len(__import__("os").sched_getaffinity(0))}
+
+camera, scene = difstar.paper_camera("focused")
+k = cfg["wavelengths"]
+wl = np.stack([np.linspace(c - 40e-9, c + 40e-9, k) for c in (600e-9, 530e-9, 450e-9)])
+s = camera.sensor
+cam = difstar.Camera(camera.lens, difstar.Sensor(
+    pixel_pitch=s.pixel_pitch, pattern=s.pattern, wavelengths=wl,
+    spectral_weights=np.ones_like(wl), phi0=s.phi0, response=s.response,
+    white_balance=s.white_balance))
+grid = difstar.choose_grid(cam, scene, crop=(cfg["crop"], cfg["crop"]), raw_only=True)
+B.simulate_spectral(cam, scene, grid, devices=n)  # compile
+best = float("inf")
+for _ in range(cfg["repeats"]):
+    t0 = time.perf_counter()
+    B.simulate_spectral(cam, scene, grid, devices=n)
+    best = min(best, time.perf_counter() - t0)
+out["spectral_s"] = best
+out["spectral_items"] = k
+out["method"] = grid.method
+
+sys.path.insert(0, "tests")
+from test_fit import F, _data, _model, _start
+model = _model()
+fitter, data = _data(model, noise_sigma=1e-3)
+m = cfg["fits"]
+u0 = np.stack([np.asarray(_start(model, 0.1, seed=i)) for i in range(m)])
+args = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]),
+                              *[F.make_args(model, data, u) for u in u0])
+B.solve_many(fitter, u0, args, devices=n, max_steps=2)  # compile
+best = float("inf")
+for _ in range(cfg["repeats"]):
+    t0 = time.perf_counter()
+    # ftol < 0: no early stop, every fit takes exactly --steps steps (a fixed workload)
+    B.solve_many(fitter, u0, args, devices=n, max_steps=cfg["steps"], ftol=-1.0)
+    best = min(best, time.perf_counter() - t0)
+out["fit_s"] = best
+out["fit_items"] = m
+print("RESULT " + json.dumps(out))
+'''
+
+FLAGS = ("--xla_force_host_platform_device_count={n} --xla_cpu_multi_thread_eigen=false "
+         "intra_op_parallelism_threads=1")
+
+
+def measure(n: int, cfg: dict) -> dict:
+    env = dict(os.environ, XLA_FLAGS=FLAGS.format(n=n))
+    env.pop("DIFSTAR_DEVICES", None)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    p = subprocess.run([sys.executable, "-c", CHILD, json.dumps(cfg)], cwd=root, env=env,
+                       capture_output=True, text=True)
+    line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
+    if p.returncode or not line:
+        raise SystemExit(f"child with {n} devices failed:\n{p.stderr[-3000:]}")
+    return json.loads(line[-1][7:])
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--devices", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--crop", type=int, default=64)
+    ap.add_argument("--wavelengths", type=int, default=8, help="per channel")
+    ap.add_argument("--fits", type=int, default=4)
+    ap.add_argument("--steps", type=int, default=6)
+    ap.add_argument("--repeats", type=int, default=2)
+    a = ap.parse_args(argv)
+    cfg = {"crop": a.crop, "wavelengths": a.wavelengths, "fits": a.fits, "steps": a.steps,
+           "repeats": a.repeats}
+    rows = {n: measure(n, cfg) for n in a.devices}
+    n0 = a.devices[0]
+    print(f"# Sharding (issue 17): {os.cpu_count()} CPUs, host CPU devices, one thread each; "
+          f"float64; best of {a.repeats} after compiling")
+    print("| workload | devices | items | wall (s) | per item (s) | efficiency t1/(N·tN) |")
+    print("|---|---|---|---|---|---|")
+    for key, label in (("spectral", f"spectral render ({a.crop}² crop, "
+                        f"{rows[n0]['method']} path; item = one wavelength per channel)"),
+                       ("fit", f"small fits ({a.steps} LM steps each)")):
+        t1 = rows[n0][f"{key}_s"] * n0
+        for n, r in rows.items():
+            t = r[f"{key}_s"]
+            items = r[f"{key}_items"]
+            print(f"| {label} | {n} | {items} | {t:.2f} | {t / items:.3f} | "
+                  f"{t1 / (n * t):.2f} |")
+    print("\ncommand: python benchmarks/sharding.py " + " ".join(argv or sys.argv[1:]))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
