@@ -167,3 +167,13 @@ def test_sharded_equals_one_device_on_four_host_devices():
     assert r["fit_du_start"] > 1e-3
     for d in (1, 3):
         assert r[f"fit_du_{d}"] < 1e-7 and r[f"fit_loss_{d}"] < 1e-9, r
+
+
+def test_cli_devices_errors_exit_2_with_one_line(tmp_path, capsys):
+    from difstar.cli import main
+
+    rc = main(["predict", "--example", "paper-focused", "--crop", "16", "16",
+               "--out", str(tmp_path / "out"), "--devices", "0"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.count("\n") == 0 and "--devices: 0" in err
+    assert not (tmp_path / "out").exists()
