@@ -326,3 +326,23 @@ def test_two_captures_share_the_pupil_and_keep_their_own_centres(synthetic):
     alone = fit(_model(), data1, max_steps=30)
     assert e["rotation"] < alone.errors["rotation"]
     assert abs(v["rotation"] - TRUE["rotation"]) < max(4 * e["rotation"], 0.5)
+
+
+def test_hop_leaves_a_neighbouring_basin(synthetic):
+    """A stage that cannot leave where it started (one solver step here) ends far from
+    the rotation; a hop stage that re-runs it from 25° back keeps the lower χ², which is
+    the right rotation's."""
+    data, _ = synthetic
+    model = _model(rotation=Param(TRUE["rotation"] + 25.0, True, (-40, 40)),
+                   x0=Param(TRUE["x0"]), y0=Param(TRUE["y0"]),
+                   flux=Param(TRUE["flux"]), background=Param(TRUE["background"]))
+    stuck = {"free": ["rotation"], "max_steps": 1}
+    alone = fit(model, data, stages=[stuck])
+    assert abs(alone.values["rotation"] - TRUE["rotation"]) > 10.0
+    res = fit(model, data, stages=[stuck, {"hop": {"name": "rotation", "offsets": [-25.0],
+                                                   "stages": 1}}])
+    assert abs(res.values["rotation"] - TRUE["rotation"]) < 1.0
+    hop = [s for s in res.stages if "hop" in s][0]
+    assert len(hop["tried"]) == 2 and hop["tried"][1]["chi2"] < hop["tried"][0]["chi2"]
+    with pytest.raises(FitInputError, match="hop"):
+        fit(model, data, stages=[{"hop": {"name": "rotation", "offsets": [1.0]}}])

@@ -897,7 +897,11 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
       the residual at the values reached, for this and later stages and the errors;
     - ``scan`` (``{"name": "rotation", "half_range": 5, "step": 0.2}``): first move that
       parameter to the lowest χ² on a grid, then solve;
-    - ``max_steps``, ``rtol``: the solver's limits (default: the arguments).
+    - ``max_steps``, ``rtol``: the solver's limits (default: the arguments);
+    - a stage that is only ``hop`` (``{"name": "rotation", "offsets": [-0.5, 0.5],
+      "stages": 2}``): re-run the ``stages`` stages before it with that parameter moved
+      by each offset and keep the lowest χ² on all pixels: a way out of a neighbouring
+      basin that the other parameters' adaptation makes self-consistent.
 
     Each stage starts from the last one's values. Standard errors are computed at the
     end for every free parameter on the pixels; those of parameters last fitted in a
@@ -926,8 +930,12 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
     last_stage = {}
     spike_errors = {}
     status, ok, steps = "converged", True, 0
-    for si, st in enumerate(stages):
-        names = model.free if st.get("free", "all") == "all" else model.expand(st["free"], n_cap)
+
+    def run_stage(si, st, values, datas):
+        """One stage from ``values``: returns (values, status, ok, steps, datas)."""
+        datas = list(datas)
+        names = (model.free if st.get("free", "all") == "all"
+                 else model.expand(st["free"], n_cap))
         fix = set(model.expand(st.get("fix", ()), n_cap))
         names = [k for k in names if k not in fix]
         bad = set(names) - set(model.free)
@@ -996,6 +1004,51 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
             entry["directions"] = [t.directions for t in targets] if n_cap > 1 \
                 else targets[0].directions
             spike_errors[si] = errs
+        return values, status, ok, steps, datas
+
+    def hop(si, st, values, datas):
+        """Re-run the ``stages`` stages before this one from ``values`` with ``name``
+        moved by each of ``offsets``; keep whichever ends at the lowest χ² on all pixels
+        (σ as before the hop), the unmoved result included."""
+        nonlocal status, ok, steps, spike_errors
+        h = dict(st["hop"])
+        name, k = h["name"], int(h.get("stages", 2))
+        if name not in model.params or not 1 <= k <= si:
+            raise FitInputError(f"fit: stage {si}: hop needs a parameter of the model and "
+                                f"1 <= stages <= {si} earlier stages; got {h}.")
+        ref = list(datas)
+
+        def chi2_of(v):
+            return _chi2(model.with_values(v), ref, v)
+
+        best = (chi2_of(values), values, datas, (status, ok, steps), dict(spike_errors))
+        tried = [{"offset": 0.0, "value": values[name], "chi2": best[0]}]
+        p = model.params[name]
+        for off in h["offsets"]:
+            v = dict(values)
+            v[name] = v[name] + float(off)
+            if p.bounds is not None:
+                v[name] = min(max(v[name], p.bounds[0]), p.bounds[1])
+            ds = list(ref)
+            for sj in range(si - k, si):
+                v, st_j, ok_j, n_j, ds = run_stage(sj, stages[sj], v, ds)
+            c = chi2_of(v)
+            tried.append({"offset": float(off), "value": v[name], "chi2": c})
+            if verbose:
+                print(f"stage {si}: hop {name} {off:+g}: ends at {v[name]:.4g}, chi2 {c:.6g} "
+                      f"(best so far {best[0]:.6g})", flush=True)
+            if c < best[0]:
+                best = (c, v, ds, (st_j, ok_j, n_j), dict(spike_errors))
+        log.append({"stage": si, "hop": h, "tried": tried})
+        _, values, datas, (status, ok, steps), spike_errors = best
+        return values, datas
+
+    for si, st in enumerate(stages):
+        if st.get("hop") is not None:
+            values, datas = hop(si, st, values, datas)
+            continue
+        values, status, ok, steps, datas = run_stage(si, st, values, datas)
+
     final = model.with_values(values)
     errors, cov, chi2, dof, mimgs, msgs = _errors(final, datas, values)
     for k in errors:
