@@ -337,7 +337,7 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
 
     The fits step in lockstep: each step is ``jax.vmap`` of the fitter's own step
     (optimistix), and each fit stops by :meth:`Fitter.solve`'s tests (optimistix's, or a
-    relative loss fall below ``ftol`` over three steps); a finished fit is held (its u
+    ``difstar._lm.StopRule``'s on the loss); a finished fit is held (its u
     and solver state no longer change) while the others go on, so it ends where
     :meth:`Fitter.solve` would. ``progress(i, result)`` is called as fit ``i`` finishes.
 
@@ -348,6 +348,8 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
     devices). In a multi-process job each process steps its own devices' fits and the
     results are gathered at the end.
     """
+    from ._lm import StopRule
+
     u0 = np.asarray(u0)
     n_items = u0.shape[0]
     if _leading(args) != n_items:
@@ -399,7 +401,7 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
             a = put(_take(args, full[sl[d]]), devs[d])
             u = put(u0[full[sl[d]]], devs[d])
             st[d] = [u, init(u, a), a]
-        hist = [[] for _ in range(size)]
+        rules = [StopRule(ftol) for _ in range(size)]  # Fitter.solve's own stopping rule
         loss0 = [None] * size
         acc = np.zeros(size, int)
         meta = np.zeros((size, 5))  # steps, accepted, loss_start, loss, result code
@@ -425,8 +427,7 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
                     done, ok = bool(done_h[j]), bool(ok_h[j])
                     if k == 2:
                         loss0[i] = loss
-                    hist[i].append(loss)
-                    if not done and k > 4 and hist[i][-4] - loss <= ftol * abs(loss):
+                    if rules[i].update(loss, int(acc_h[j])) and not done:
                         done = ok = True
                     if done or k == max_steps:
                         hold[i] = True
