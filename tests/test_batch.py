@@ -13,6 +13,7 @@ import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -176,4 +177,15 @@ def test_cli_devices_errors_exit_2_with_one_line(tmp_path, capsys):
                "--out", str(tmp_path / "out"), "--devices", "0"])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and err.count("\n") == 0 and "--devices: 0" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_fit_devices_without_a_study_is_refused(tmp_path, capsys):
+    from difstar.cli import main
+
+    manifest = Path(__file__).resolve().parents[1] / "fit" / "synthetic-paper-camera" / \
+        "manifest.json"
+    rc = main(["fit", str(manifest), "--out", str(tmp_path / "out"), "--devices", "1"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.count("\n") == 0 and "--devices" in err
     assert not (tmp_path / "out").exists()

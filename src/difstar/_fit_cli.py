@@ -776,6 +776,9 @@ def _cmd_fit(a) -> int:
     from difstar.io._scene import SceneError
 
     _enable_x64()
+    if getattr(a, "devices", None) is not None and not a.recovery_study:
+        raise SceneError("--devices: only --recovery-study runs several fits to share out; "
+                         "drop --devices for a single fit.")
     man = load_manifest(a.manifest)
     if a.max_steps is not None:
         man.solver["max_steps"] = a.max_steps

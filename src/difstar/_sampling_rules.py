@@ -107,7 +107,11 @@ def check_sampling(camera: Camera, scene: Scene, grid: Grid) -> None:
     )
     g = geometry_of(camera, scene)
     vals = [_concrete(v) for v in (lens.pupil.max_radius(), g.z_exit_pupil, g.defocus)]
-    lams = [_concrete(v) for v in np.ravel(camera.sensor.wavelengths)]
+    try:  # traced wavelengths (a spectral render sharded over them): nothing to check
+        lams = [float(v) for v in np.ravel(np.asarray(camera.sensor.wavelengths))]
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError,
+            TypeError):
+        return
     if any(v is None for v in vals + lams):
         return
     r, z_r, dz = vals
