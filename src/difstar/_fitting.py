@@ -1008,8 +1008,9 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
 
     def hop(si, st, values, datas):
         """Re-run the ``stages`` stages before this one from ``values`` with ``name``
-        moved by each of ``offsets``; keep whichever ends at the lowest χ² on all pixels
-        (σ as before the hop), the unmoved result included."""
+        moved by each of ``offsets`` (σ as before the hop: they do not re-estimate the
+        noise); keep whichever ends at the lowest χ² on all pixels, the unmoved result
+        included."""
         nonlocal status, ok, steps, spike_errors
         h = dict(st["hop"])
         name, k = h["name"], int(h.get("stages", 2))
@@ -1030,8 +1031,9 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
             if p.bounds is not None:
                 v[name] = min(max(v[name], p.bounds[0]), p.bounds[1])
             ds = list(ref)
-            for sj in range(si - k, si):
-                v, st_j, ok_j, n_j, ds = run_stage(sj, stages[sj], v, ds)
+            for sj in range(si - k, si):  # with σ as before the hop: comparable χ²
+                again = {q: x for q, x in stages[sj].items() if q != "noise_from_residuals"}
+                v, st_j, ok_j, n_j, ds = run_stage(sj, again, v, ds)
             c = chi2_of(v)
             tried.append({"offset": float(off), "value": v[name], "chi2": c})
             if verbose:
