@@ -271,17 +271,19 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = 
 #: constrained, and Levenberg–Marquardt can stop in a shallow basin (a knee half or
 #: twice its true value) that the other channels' data do not pull it out of.
 RESTART_FACTORS = (0.5, 2.0)
+RESTARTED = ("knee",)
 
 
 def restart_response_curves(fitter, model, u, args, solver: dict, *, verbose: bool = True):
-    """From the converged ``u``, re-solve with each channel's knee (then toe) moved by
-    each of :data:`RESTART_FACTORS` (inside its bounds), everything else as reached;
-    keep any start that ends at a lower loss. Returns (u, tries)."""
+    """From the converged ``u``, re-solve with each channel's knee moved by each of
+    :data:`RESTART_FACTORS` (inside its bounds), everything else as reached; keep any
+    start that ends at a lower loss. Returns (u, tries). (The toe, pinned by the
+    unsaturated dark pixels of every capture, has not needed it.)"""
     from difstar._fit import from_unconstrained, to_unconstrained
 
     best = fitter.loss(u, args)
     tries = []
-    for name in ("knee", "toe"):
+    for name in RESTARTED:
         spec = model.param.get(name)
         if spec is None or not spec.free:
             continue
