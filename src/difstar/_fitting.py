@@ -282,6 +282,7 @@ class FitData:
         col1) cuts a window around the source (keep row0 and col0 even to keep the
         pattern's phase — any offset works, the mask follows the photosites).
         ``pixel_scale``: arcsec per pixel (pitch / focal length)."""
+        from ._cfa import channel_index
         from .io import read_raw
         from .io._raw import RawCapture
 
@@ -292,13 +293,11 @@ class FitData:
         if not (gain_e_per_dn > 0 and read_noise_dn >= 0):
             raise FitInputError("FitData.from_raw: gain_e_per_dn must be > 0 and "
                                 f"read_noise_dn >= 0; got {gain_e_per_dn}, {read_noise_dn}.")
-        h, w = cap.shape
-        tile = np.array(list(cap.pattern)).reshape(2, 2)
-        colour = np.tile(tile, (h // 2 + 1, w // 2 + 1))[:h, :w]
+        colour = channel_index(cap.shape, cap.pattern)  # 0 R, 1 G, 2 B
         scale = cap.white_level - cap.black_level_tile.mean()
         signal_dn = np.maximum(cap.cfa * scale, 0.0)
         sigma = np.sqrt(read_noise_dn**2 + signal_dn / gain_e_per_dn) / scale
-        mask = (colour == channel) & ~cap.saturated
+        mask = (colour == "RGB".index(channel)) & ~cap.saturated
         return FitData.from_array(cap.cfa, sigma=sigma, mask=mask, roi=roi,
                                   pixel_scale=pixel_scale, path=str(cap.path))
 
@@ -306,8 +305,7 @@ class FitData:
         """Only the pixels between ``r_min`` and ``r_max`` pixels of the centre pixel
         (e.g. the spikes, without the core)."""
         h, w = self.image.shape
-        yy, xx = np.mgrid[0:h, 0:w]
-        r = np.hypot(yy - h // 2, xx - w // 2)
+        r, _ = _polar((h, w), (w // 2, h // 2))
         return FitData(self.image, self.sigma, self.mask & (r >= r_min) & (r <= r_max),
                        self.pixel_scale, self.path)
 
@@ -683,6 +681,21 @@ def _rms_peak(residual, data, mask) -> float:
 # --- fitting ----------------------------------------------------------------------------
 
 
+def _polar(shape, centre, period=180.0):
+    """(r, θ) of every pixel of a window ``shape`` about ``centre`` (x, y in pixels from
+    the top-left pixel's centre, rows down): r in pixels, θ in degrees counter-clockwise
+    from +x with y up, modulo ``period`` (180: a spike and its opposite are one)."""
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    dx, dy = xx - centre[0], -(yy - centre[1])
+    return np.hypot(dx, dy), np.degrees(np.arctan2(dy, dx)) % period
+
+
+def _angle_from(th, phi):
+    """Signed angle (degrees, in [−90, 90)) from direction ``phi`` to ``th``, mod 180."""
+    return (th - phi + 90.0) % 180.0 - 90.0
+
+
 class _PixelTarget:
     """The residuals (model − data)/σ on the data's used pixels."""
 
@@ -715,17 +728,13 @@ class SpikeProfiles:
     def __init__(self, data: FitData, centre, background, directions, *, r_min=12.0,
                  r_max=45.0, half_width=4.0, bin_width=0.25):
         h, w = data.image.shape
-        cx, cy = (float(c) for c in centre)
-        yy, xx = np.mgrid[0:h, 0:w]
-        dx, dy = xx - cx, -(yy - cy)
-        r = np.hypot(dx, dy)
-        th = np.degrees(np.arctan2(dy, dx)) % 180.0
+        r, th = _polar((h, w), (float(centre[0]), float(centre[1])))
         use = data.mask & (r >= r_min) & (r <= r_max)
         nb = int(round(2 * half_width / bin_width))
         rows, cols, vals, window = [], [], [], []
         b = 0
         for k, phi in enumerate(directions):
-            off = (th - phi + 90.0) % 180.0 - 90.0
+            off = _angle_from(th, phi)
             j = np.floor((off + half_width) / bin_width).astype(int)
             for jb in range(nb):
                 sel = np.flatnonzero((use & (j == jb)).ravel())
@@ -806,12 +815,13 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     def residuals(u, _):
         return res(values_of(u))[0]
 
+    residuals = jax.jit(residuals)  # one compile, shared by the check and the solver
     u0 = jnp.asarray([_to_u(p) for p in params], float)
-    r0 = jax.jit(residuals)(u0, None)
+    r0 = residuals(u0, None)
     if not bool(jnp.all(jnp.isfinite(r0))):
         raise FitInputError("fit: the model is not finite at the start; check the units "
                             "(wavelength in metres, pixel_scale in arcsec, Zernike in nm).")
-    sol = LMStepper(jax.jit(residuals), rtol=rtol, atol=atol).solve(
+    sol = LMStepper(residuals, rtol=rtol, atol=atol).solve(
         u0, None, max_steps=max_steps, ftol=ftol)
     ok = sol.result == "converged"
     status = {"converged": "converged", "failed": "not converged: the solver failed",
@@ -1099,13 +1109,10 @@ def spike_target(data: FitData, values: Mapping[str, float], *, n_spikes=8, r_mi
     if profiles:
         return SpikeProfiles(data, centre, values["background"], dirs, r_min=r_min,
                              r_max=r_max, half_width=half_width, bin_width=bin_width)
-    yy, xx = np.mgrid[0:h, 0:w]
-    dx, dy = xx - centre[0], -(yy - centre[1])
-    r = np.hypot(dx, dy)
-    th = np.degrees(np.arctan2(dy, dx)) % 180.0
+    r, th = _polar((h, w), centre)
     near = np.zeros((h, w), bool)
     for phi in dirs:
-        near |= np.abs((th - phi + 90.0) % 180.0 - 90.0) <= half_width
+        near |= np.abs(_angle_from(th, phi)) <= half_width
     t = _PixelTarget(FitData(data.image, data.sigma, data.mask & near & (r >= r_min)
                              & (r <= r_max), data.pixel_scale, data.path))
     t.kind = "spike pixels"
@@ -1163,12 +1170,8 @@ def spike_angles(image, centre=None, *, r_min=15.0, r_max=40.0, n_spikes=6, bins
         sub = img[r - 1:r + 2, c - 1:c + 2]
         yy, xx = np.mgrid[r - 1:r + 2, c - 1:c + 2]
         centre = (float((sub * xx).sum() / sub.sum()), float((sub * yy).sum() / sub.sum()))
-    cx, cy = centre
-    yy, xx = np.mgrid[0:h, 0:w]
-    dx, dy = xx - cx, -(yy - cy)
-    rr = np.hypot(dx, dy)
-    th = np.degrees(np.arctan2(dy, dx)) % (180.0 if symmetric else 360.0)
     period = 180.0 if symmetric else 360.0
+    rr, th = _polar((h, w), centre, period)
     sel = (rr >= r_min) & (rr <= r_max) & np.isfinite(img)
     nb = bins // 2 if symmetric else bins
     edges = np.linspace(0, period, nb + 1)
