@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-PERTURB = 0.2  # recovery study: starts within ± 20 % of each parameter
+from difstar._fitting import PERTURB  # starts within ± 20 %: one figure for both fitters
+
 SATURATION_GUARD = 4.0  # also mask pixels expected within this many σ of the white level
 
 
