@@ -48,6 +48,7 @@ import numpy as np
 
 from ._psf import plan_psf, psf
 from ._pupil import Circle, Obstructed, Struts, distorted, hex_segments
+from ._sensor import response_curve
 from ._zernike import Zernike
 
 ARCSEC = math.pi / (180 * 3600)
@@ -207,22 +208,37 @@ class Noise:
 @dataclasses.dataclass
 class FitData:
     """An image to fit: ``image`` (H, W), ``sigma`` (per pixel, or from ``noise``),
-    ``mask`` (True = use), cut to ``roi`` = (row0, row1, col0, col1) if given."""
+    ``mask`` (True = use), cut to ``roi`` = (row0, row1, col0, col1) if given.
+
+    ``exposure``: this capture's relative exposure (time × gain; 1 by default); the
+    model's ``flux`` is multiplied by it, so the captures of an exposure bracket can
+    share one flux (leave ``flux`` out of ``per_capture``). ``saturation``: pixels at or
+    above this level are not used (the sensor clipped them)."""
 
     image: np.ndarray
     sigma: np.ndarray
     mask: np.ndarray
     pixel_scale: float | None = None
     path: str | None = None
+    exposure: float = 1.0
 
     @staticmethod
     def from_array(image, *, sigma=None, noise: Noise | None = None, mask=None, roi=None,
-                   pixel_scale=None, path=None) -> FitData:
+                   pixel_scale=None, path=None, exposure=1.0, saturation=None) -> FitData:
+        exposure = float(exposure)
+        if not (math.isfinite(exposure) and exposure > 0):
+            raise FitInputError(f"FitData: exposure must be a finite number > 0 (a relative "
+                                f"exposure time); got {exposure}.")
         img = np.asarray(image, dtype=float)
         if img.ndim != 2 or min(img.shape) < 4:
             raise FitInputError(f"FitData: the image must be 2-D, at least 4 × 4; got shape "
                                 f"{img.shape}.")
         m = np.isfinite(img) if mask is None else (np.asarray(mask, bool) & np.isfinite(img))
+        if saturation is not None:
+            if not math.isfinite(float(saturation)):
+                raise FitInputError(f"FitData: saturation must be a finite level; got "
+                                    f"{saturation}.")
+            m = m & ~(np.where(np.isfinite(img), img, 0.0) >= float(saturation))
         if roi is not None:
             r0, r1, c0, c1 = (int(v) for v in roi)
             img, m = img[r0:r1, c0:c1], m[r0:r1, c0:c1]
@@ -254,7 +270,7 @@ class FitData:
         if np.any(~np.isfinite(sigma[m])) or np.any(sigma[m] <= 0):
             raise FitInputError("FitData: sigma must be finite and > 0 on every used pixel.")
         sigma[~m] = 1.0
-        return FitData(img, sigma, m, pixel_scale, path)
+        return FitData(img, sigma, m, pixel_scale, path, exposure)
 
     @staticmethod
     def from_file(path, **kw) -> FitData:
@@ -306,16 +322,15 @@ class FitData:
         (e.g. the spikes, without the core)."""
         h, w = self.image.shape
         r, _ = _polar((h, w), (w // 2, h // 2))
-        return FitData(self.image, self.sigma, self.mask & (r >= r_min) & (r <= r_max),
-                       self.pixel_scale, self.path)
+        return dataclasses.replace(self, mask=self.mask & (r >= r_min) & (r <= r_max))
 
     def cropped(self, half: int) -> FitData:
         """The central (2 half + 1)² window (around the data's centre pixel)."""
         h, w = self.image.shape
         r0, c0 = max(0, h // 2 - half), max(0, w // 2 - half)
         r1, c1 = min(h, h // 2 + half + 1), min(w, w // 2 + half + 1)
-        return FitData(self.image[r0:r1, c0:c1], self.sigma[r0:r1, c0:c1],
-                       self.mask[r0:r1, c0:c1], self.pixel_scale, self.path)
+        return dataclasses.replace(self, image=self.image[r0:r1, c0:c1],
+                                   sigma=self.sigma[r0:r1, c0:c1], mask=self.mask[r0:r1, c0:c1])
 
 
 def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, faint=0.01,
@@ -363,8 +378,7 @@ def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, f
     gain = 1.0 / inv_gain if inv_gain > 0 else float("inf")
     var = read2 + inten * inv_gain + (floor * inten) ** 2
     sigma = np.where(data.mask, np.sqrt(np.maximum(var, 1e-300)), 1.0)
-    return Noise(read, gain, floor), FitData(data.image, sigma, data.mask, data.pixel_scale,
-                                             data.path)
+    return Noise(read, gain, floor), dataclasses.replace(data, sigma=sigma)
 
 
 def fainter_copy(data: FitData, model_image, background, factor, noise: Noise, *,
@@ -383,8 +397,8 @@ def fainter_copy(data: FitData, model_image, background, factor, noise: Noise, *
     img = background + (data.image - background) / f + rng.normal(0, 1, inten.shape) * np.sqrt(
         np.maximum(extra, 0.0))
     sigma = np.sqrt(noise.read**2 + inten / f / noise.gain)
-    return FitData(np.where(data.mask, img, 0.0), np.where(data.mask, sigma, 1.0), data.mask,
-                   data.pixel_scale, data.path)
+    return dataclasses.replace(data, image=np.where(data.mask, img, 0.0),
+                               sigma=np.where(data.mask, sigma, 1.0))
 
 
 # --- the model --------------------------------------------------------------------------
@@ -408,6 +422,52 @@ COMMON = {"rotation": 0.0, "x0": 0.0, "y0": 0.0, "flux": 1.0, "background": 0.0,
           "shear": 0.0, "aspect": 0.0}
 
 
+#: The disc source's parameter: its radius in data pixels.
+SOURCE_DISC = {"source_radius": 1.0}
+#: The detector's response curve (:func:`difstar._sensor.response_curve`): the image is
+#: ``white`` · Z(I / ``white``; ``toe``, ``knee``) + background, I the linear image.
+RESPONSE = {"white": 1.0, "toe": 0.0, "knee": 60.0}
+
+
+def _source_kind(source):
+    """"point", "disc" or a user image (a 2-D array of non-negative finite values with a
+    positive sum; its centre pixel (shape // 2) is the star's position)."""
+    if isinstance(source, str):
+        if source not in ("point", "disc"):
+            raise FitInputError(f"ImageModel: source must be 'point', 'disc' or an image "
+                                f"(2-D array); got {source!r}.")
+        return source
+    a = np.asarray(source, dtype=float)
+    if a.ndim != 2 or not np.all(np.isfinite(a)) or np.any(a < 0) or not a.sum() > 0:
+        raise FitInputError("ImageModel: a source image must be a 2-D array of finite, "
+                            "non-negative values with a positive sum.")
+    return a.copy()
+
+
+def disc_transform(x):
+    """2 J1(x) / x, the Fourier transform of a uniform disc of unit area at
+    x = 2π f R (f cycles per pixel, R the radius in pixels); 1 at x = 0. J1 by the
+    rational and asymptotic approximations of Hart (Numerical Recipes' bessj1), to
+    about 1e-8, smooth in x for gradients."""
+    x = jnp.abs(jnp.asarray(x, float))
+    y = x * x
+    p = 72362614232.0 + y * (-7895059235.0 + y * (242396853.1 + y * (
+        -2972611.439 + y * (15704.48260 + y * (-30.16036606)))))
+    q = 144725228442.0 + y * (2300535178.0 + y * (18583304.74 + y * (
+        99447.43394 + y * (376.9991397 + y))))
+    small = 2.0 * p / q  # 2 J1(x)/x for x < 8 (J1 = x p/q)
+    xb = jnp.maximum(x, 8.0)
+    z = 8.0 / xb
+    y2 = z * z
+    xx = xb - 2.356194491
+    a1 = 1.0 + y2 * (0.183105e-2 + y2 * (-0.3516396496e-4 + y2 * (
+        0.2457520174e-5 + y2 * (-0.240337019e-6))))
+    a2 = 0.04687499995 + y2 * (-0.2002690873e-3 + y2 * (0.8449199096e-5 + y2 * (
+        -0.88228987e-6 + y2 * 0.105787412e-6)))
+    big = 2.0 * jnp.sqrt(0.636619772 / xb) * (jnp.cos(xx) * a1 - z * jnp.sin(xx) * a2) / xb
+    return jnp.where(x < 8.0, small, big)
+
+
 def image_distortion(shear, aspect):
     """The image-plane linear map D = [[1, 0], [shear, 1 + aspect]] (x right, y up): the
     data's y axis keeps its direction (so ``rotation`` is read against it), a direction
@@ -429,12 +489,24 @@ class ImageModel:
     ``zernike``. ``oversample``: data pixels per native detector pixel (drizzled or
     oversampled data: the PSF is integrated over the data's fine pixels, then convolved
     with a native pixel's box); ``pad``: extra data pixels computed around the window so
-    the blur does not wrap. ``accuracy``: the PSF engine's target."""
+    the blur does not wrap. ``accuracy``: the PSF engine's target.
+
+    ``source``: "point" (default); "disc", a uniform disc of radius ``source_radius``
+    (data pixels; its transform 2 J1(x)/x multiplies the image's spectrum, like the
+    blurs); or a 2-D array, the source as the data's pixels would see it (any size up to
+    the padded window, its centre pixel shape // 2 at the star's position). ``response``:
+    the detector's response curve, the image becomes ``white`` · Z(I / ``white``) +
+    background with the toe and knee of :func:`difstar._sensor.response_curve` (the
+    camera fitter's curve) — for images that saturate softly; hard-clipped pixels are
+    better masked (``FitData.from_array(..., saturation=level)``)."""
 
     def __init__(self, pupil: PupilBuilder, params: Mapping[str, Any], *, light: Light,
                  zernike: Sequence[int] = (), oversample: float = 1.0, pad: int = 8,
-                 accuracy: float = 1e-2, max_shift: float = 4.0):
+                 accuracy: float = 1e-2, max_shift: float = 4.0, source: Any = "point",
+                 response: bool = False):
         self.pupil = pupil
+        self.source = _source_kind(source)
+        self.response = bool(response)
         self.light = light
         self.zernike = tuple(int(j) for j in zernike)
         if any(j < 2 for j in self.zernike):
@@ -444,6 +516,10 @@ class ImageModel:
         self.accuracy = float(accuracy)
         self.max_shift = float(max_shift)
         defaults = dict(COMMON) | dict(pupil.defaults) | {f"z{j}": 0.0 for j in self.zernike}
+        if isinstance(self.source, str) and self.source == "disc":
+            defaults |= SOURCE_DISC
+        if self.response:
+            defaults |= RESPONSE
         unknown = set(params) - set(defaults)
         if unknown:
             raise FitInputError(f"ImageModel: unknown parameters {sorted(unknown)}; known: "
@@ -454,12 +530,19 @@ class ImageModel:
             if not 1e-4 < v < 100:
                 raise FitInputError(f"ImageModel: pixel_scale {v} is not in arcsec per pixel "
                                     "(expected 1e-4 … 100).")
+        for k, lo in (("source_radius", 0.0), ("white", 1e-300), ("knee", 1e-300),
+                      ("toe", 0.0)):
+            p = self.params.get(k)
+            if p is not None and min([p.value, *(p.bounds or ())]) < lo:
+                raise FitInputError(f"ImageModel: {k} = {p.value} (bounds {p.bounds}) must be "
+                                    f"{'>= 0' if lo == 0 else '> 0'}.")
         for j in self.zernike:
             p = self.params[f"z{j}"]
             if max([abs(p.value), *(abs(b) for b in (p.bounds or ()))]) > 1e4:
                 raise FitInputError(f"ImageModel: z{j} = {p.value} (bounds {p.bounds}) is "
                                     "not in nm RMS (over 10 µm).")
         self._plans = {}
+        self._source_ft = {}
         self.per_capture: tuple[str, ...] = ()
 
     def for_captures(self, per_capture: Sequence[str], n: int) -> ImageModel:
@@ -557,9 +640,10 @@ class ImageModel:
             pup = distorted(pup, jnp.linalg.inv(d).T)  # the pupil map for image map D
         return pup
 
-    def image(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None):
+    def image(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None,
+              exposure: float = 1.0):
         """The model image (H, W) in data pixels for parameter values ``v`` (a dict of
-        scalars, traceable)."""
+        scalars, traceable), for a capture of relative ``exposure``."""
         h, w = shape
         o = self.oversample
         pad = self.pad
@@ -590,9 +674,30 @@ class ImageModel:
                        + v["halo"] * jnp.exp(-2 * math.pi**2 * v["halo_width"] ** 2 * f2))
         if o != 1.0:
             kern = kern * jnp.asarray(np.sinc(o * fx) * np.sinc(o * fy))
+        if isinstance(self.source, str) and self.source == "disc":
+            kern = kern * disc_transform(2 * math.pi * np.sqrt(f2) * v["source_radius"])
+        elif not isinstance(self.source, str):
+            kern = kern * self._source_spectrum((hp, wp))
         img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
-        img = img[pad:pad + h, pad:pad + w]
-        return v["flux"] * img + v["background"]
+        img = v["flux"] * exposure * img[pad:pad + h, pad:pad + w]
+        if self.response:
+            img = v["white"] * response_curve(img / v["white"], v["toe"], v["knee"])
+        return img + v["background"]
+
+    def _source_spectrum(self, shape):
+        """The half spectrum of the user's source image (unit sum, its centre pixel at
+        the origin) on the padded window ``shape``."""
+        if shape not in self._source_ft:
+            src = self.source
+            sh, sw = src.shape
+            if sh > shape[0] or sw > shape[1]:
+                raise FitInputError(f"ImageModel: the source image ({sh} × {sw}) is larger "
+                                    f"than the padded window {shape}; crop it or raise pad.")
+            big = np.zeros(shape)
+            big[:sh, :sw] = src / src.sum()
+            big = np.roll(big, (-(sh // 2), -(sw // 2)), axis=(0, 1))
+            self._source_ft[shape] = jnp.asarray(np.fft.rfft2(big))
+        return self._source_ft[shape]
 
     def __call__(self, shape, values=None):
         """Concrete model image at ``values`` (default: the current values)."""
@@ -783,7 +888,7 @@ def _residual_fn(model: ImageModel, data, target):
         rs, ms = [], []
         for i, (d, t, plan) in enumerate(zip(datas, targets, plans)):
             vi = model.capture_values(v, i)
-            m = model.image(vi, d.image.shape, plan)
+            m = model.image(vi, d.image.shape, plan, exposure=d.exposure)
             rs.append(t(m, vi))
             ms.append(m)
         return (rs[0] if len(rs) == 1 else jnp.concatenate(rs)), ms
@@ -909,9 +1014,13 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
       parameter to the lowest χ² on a grid, then solve;
     - ``max_steps``, ``rtol``: the solver's limits (default: the arguments);
     - a stage that is only ``hop`` (``{"name": "rotation", "offsets": [-0.5, 0.5],
-      "stages": 2}``): re-run the ``stages`` stages before it with that parameter moved
-      by each offset and keep the lowest χ² on all pixels: a way out of a neighbouring
-      basin that the other parameters' adaptation makes self-consistent.
+      "stages": 2}``): re-run the ``stages`` solving stages before it with that
+      parameter moved by each offset and keep the lowest χ² on all pixels: a way out of
+      a neighbouring basin that the other parameters' adaptation makes self-consistent;
+      ``{"flip": ["z6"], "stages": 2}`` negates each named parameter in turn instead —
+      for the sign ambiguities of even wavefront terms in an in-focus image (the
+      "twin" of phase retrieval: W(x, y) and −W(−x, −y) give the same image for a
+      centrally symmetric pupil, so an almost symmetric one has a near-twin minimum).
 
     Each stage starts from the last one's values. Standard errors are computed at the
     end for every free parameter on the pixels; those of parameters last fitted in a
@@ -1017,37 +1126,50 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         return values, status, ok, steps, datas
 
     def hop(si, st, values, datas):
-        """Re-run the ``stages`` stages before this one from ``values`` with ``name``
-        moved by each of ``offsets`` (σ as before the hop: they do not re-estimate the
-        noise); keep whichever ends at the lowest χ² on all pixels, the unmoved result
-        included."""
+        """Re-run the ``stages`` solving stages before this one (hop stages are passed
+        over) from ``values`` changed in each way the hop names: ``name`` moved by each
+        of ``offsets``, or each name in ``flip`` negated (σ as before the hop: they do
+        not re-estimate the noise); keep whichever ends at the lowest χ² on all pixels,
+        the unchanged result included."""
         nonlocal status, ok, steps, spike_errors
         h = dict(st["hop"])
-        name, k = h["name"], int(h.get("stages", 2))
-        if name not in model.params or not 1 <= k <= si:
-            raise FitInputError(f"fit: stage {si}: hop needs a parameter of the model and "
-                                f"1 <= stages <= {si} earlier stages; got {h}.")
+        k = int(h.get("stages", 2))
+        solving = [sj for sj in range(si) if stages[sj].get("hop") is None]
+        flips = list(h.get("flip", ()))
+        name = h.get("name")
+        bad = [q for q in flips + ([name] if name is not None else []) if q not in model.params]
+        if (bad or not 1 <= k <= len(solving) or (name is None) == (not flips)
+                or (name is not None and not h.get("offsets"))):
+            raise FitInputError(f"fit: stage {si}: hop needs either a parameter of the model "
+                                "with offsets ({'name': ..., 'offsets': [...]}) or a list of "
+                                "parameters to negate ({'flip': [...]}), and 1 <= stages <= "
+                                f"{len(solving)} earlier solving stages; got {h}"
+                                + (f" (unknown: {bad})" if bad else "") + ".")
         ref = list(datas)
 
         def chi2_of(v):
             return _chi2(model.with_values(v), ref, v)
 
         best = (chi2_of(values), values, datas, (status, ok, steps), dict(spike_errors))
-        tried = [{"offset": 0.0, "value": values[name], "chi2": best[0]}]
-        p = model.params[name]
-        for off in h["offsets"]:
+        tried = [{"change": "none", "chi2": best[0]}]
+        moves = ([(f"{name} {float(off):+g}", {name: values[name] + float(off)})
+                  for off in h.get("offsets", ()) if name is not None]
+                 + [(f"{q} negated", {q: -values[q]}) for q in flips])
+        for label, change in moves:
             v = dict(values)
-            v[name] = v[name] + float(off)
-            if p.bounds is not None:
-                v[name] = min(max(v[name], p.bounds[0]), p.bounds[1])
+            for q, x in change.items():
+                p = model.params[q]
+                v[q] = x if p.bounds is None else min(max(x, p.bounds[0]), p.bounds[1])
             ds = list(ref)
-            for sj in range(si - k, si):  # with σ as before the hop: comparable χ²
+            for sj in solving[-k:]:  # with σ as before the hop: comparable χ²
                 again = {q: x for q, x in stages[sj].items() if q != "noise_from_residuals"}
                 v, st_j, ok_j, n_j, ds = run_stage(sj, again, v, ds)
             c = chi2_of(v)
-            tried.append({"offset": float(off), "value": v[name], "chi2": c})
+            tried.append({"change": label, "chi2": c,
+                          "ends_at": {q: v[q] for q in change}})
             if verbose:
-                print(f"stage {si}: hop {name} {off:+g}: ends at {v[name]:.4g}, chi2 {c:.6g} "
+                print(f"stage {si}: hop {label}: ends at "
+                      f"{ {q: round(v[q], 4) for q in change} }, chi2 {c:.6g} "
                       f"(best so far {best[0]:.6g})", flush=True)
             if c < best[0]:
                 best = (c, v, ds, (st_j, ok_j, n_j), dict(spike_errors))
@@ -1113,8 +1235,8 @@ def spike_target(data: FitData, values: Mapping[str, float], *, n_spikes=8, r_mi
     near = np.zeros((h, w), bool)
     for phi in dirs:
         near |= np.abs(_angle_from(th, phi)) <= half_width
-    t = _PixelTarget(FitData(data.image, data.sigma, data.mask & near & (r >= r_min)
-                             & (r <= r_max), data.pixel_scale, data.path))
+    t = _PixelTarget(dataclasses.replace(data, mask=data.mask & near & (r >= r_min)
+                                         & (r <= r_max)))
     t.kind = "spike pixels"
     t.directions = [float(d) for d in dirs]
     return t
