@@ -32,9 +32,14 @@ TRUE = {"x0": 0.31, "y0": -0.22, "rotation": 4.0, "flux": 1000.0, "background": 
 
 
 def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n=1024,
-                radius=0.425, obstruction=0.16, strut_width=0.06):
+                radius=0.425, obstruction=0.16, strut_width=0.06, z4=0.0, disc=0.0):
     """Fraction of power per data pixel by a NumPy FFT of a pupil raster (y up), then
-    ``flux`` × that + ``background``. Independent of difstar's engine."""
+    ``flux`` × that + ``background``. Independent of difstar's engine. ``z4``: Noll
+    defocus (m RMS over the radius 1.1 ``radius``, the circle builder's max_radius),
+    entering as exp(−i k W) in this FFT's sign convention (the one in which the phase
+    ramp of a shift +x0 is exp(+i k θ x): difstar's exp(+i k W) with W = −θ x). ``disc``:
+    the source is a uniform disc of that radius (data pixels), convolved on the fine
+    grid with an 8 × 8 anti-aliased raster of it before the pixels integrate."""
     delta = P * ARCSEC / fine  # rad per fine sample
     dx = LAM / (n * delta)  # pupil sample (m)
     half = int(math.ceil(1.05 * radius / dx))
@@ -51,9 +56,22 @@ def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n
     ax = 1.5 * delta + x0 * P * ARCSEC
     ay = 1.5 * delta - y0 * P * ARCSEC
     field = cov * np.exp(2j * math.pi * (xc[None, :] * ax + xc[:, None] * ay) / LAM)
+    if z4:
+        rho2 = (xc[None, :] ** 2 + xc[:, None] ** 2) / (1.1 * radius) ** 2
+        field = field * np.exp(-2j * math.pi * z4 * math.sqrt(3) * (2 * rho2 - 1) / LAM)
     big = np.zeros((n, n), complex)
     big[:2 * half, :2 * half] = field
     inten = np.abs(np.fft.fftshift(np.fft.fft2(big))) ** 2 / (n * n * np.sum(cov))
+    if disc:
+        rf, aa = disc * fine, 8  # radius in fine samples; sub-samples a side
+        m = int(math.ceil(rf)) + 1
+        t = (np.arange(-m * aa, (m + 1) * aa) + 0.5) / aa - 0.5  # fine-sample units
+        inside = np.hypot(t[None, :], t[:, None]) <= rf
+        k = inside.reshape(2 * m + 1, aa, 2 * m + 1, aa).mean(axis=(1, 3))
+        kern = np.zeros((n, n))
+        kern[:2 * m + 1, :2 * m + 1] = k / k.sum()
+        kern = np.roll(kern, (-m, -m), axis=(0, 1))
+        inten = np.real(np.fft.ifft2(np.fft.fft2(inten) * np.fft.fft2(kern)))
     h, w = shape
     ky = n // 2 + fine * (np.arange(h) - h // 2)
     kx = n // 2 + fine * (np.arange(w) - w // 2)
@@ -346,3 +364,137 @@ def test_hop_leaves_a_neighbouring_basin(synthetic):
     assert len(hop["tried"]) == 2 and hop["tried"][1]["chi2"] < hop["tried"][0]["chi2"]
     with pytest.raises(FitInputError, match="hop"):
         fit(model, data, stages=[{"hop": {"name": "rotation", "offsets": [1.0]}}])
+
+
+def test_flip_hop_leaves_the_twin_of_a_defocus():
+    """An in-focus image cannot tell W(x, y) from −W(−x, −y) for a centrally symmetric
+    pupil; with three struts the twin of a defocus is a neighbouring minimum. A fit
+    started at −z4 stays in it; a hop that negates z4 and re-runs the stage ends at the
+    independent generator's +z4 with the lower χ²."""
+    z4 = 400e-9
+    clean = _numpy_star(**TRUE, z4=z4)
+    sigma = 2e-3 * clean.max()
+    data = FitData.from_array(clean + np.random.default_rng(3).normal(0, sigma, clean.shape),
+                              sigma=sigma)
+    fixed = {k: Param(TRUE[k]) for k in ("rotation", "x0", "y0", "background")}
+    model = ImageModel(obstructed_circle_pupil(0.425),
+                       fixed | {"flux": Param(TRUE["flux"], True, scale=100.0),
+                                "pixel_scale": Param(P), "obstruction": Param(0.16),
+                                "strut_width": Param(0.06),
+                                "z4": Param(-z4 * 1e9, True, (-1000, 1000))},
+                       light=Light.monochromatic(LAM), zernike=[4], pad=4, accuracy=3e-3)
+    stage = {"free": ["z4", "flux"], "max_steps": 30}
+    twin = fit(model, data, stages=[stage])
+    assert twin.values["z4"] < 0  # the twin: a minimum the solver does not leave
+    res = fit(model, data, stages=[stage, {"hop": {"flip": ["z4"], "stages": 1}}])
+    assert abs(res.values["z4"] - z4 * 1e9) < max(4 * res.errors["z4"], 5.0)
+    assert res.chi2 < twin.chi2
+    assert res.chi2_dof < 2.0
+    hop = [s for s in res.stages if "hop" in s][0]
+    assert hop["tried"][1]["change"] == "z4 negated"
+    with pytest.raises(FitInputError, match="flip"):
+        fit(model, data, stages=[stage, {"hop": {"flip": ["z99"]}}])
+
+
+def test_disc_source_through_a_response_curve_in_an_exposure_bracket():
+    """Three exposures (×1, ×4, ×16) of an extended disc source by the independent
+    generator (the disc convolved on a fine raster), through the camera's response curve
+    written here in NumPy (toe, knee; the ×16 core is deep in the shoulder) and clipped
+    pixels masked: one shared flux, centre, disc radius and knee recovered."""
+    radius, knee, toe, white = 1.6, 8.0, 0.02, 1.0
+    lin = _numpy_star(**dict(TRUE, flux=1.0, background=0.0), disc=radius)
+    lin = lin / lin.max() * 0.35  # the ×1 capture's peak, in units of full scale
+
+    def response(e):  # the camera fitter's curve: toe, then a softplus knee to 1
+        u = np.sqrt(e**2 + toe**2) - toe
+        return 1 - np.log1p(np.exp(knee * (1 - u))) / np.log1p(np.exp(knee))
+
+    rng = np.random.default_rng(5)
+    datas = []
+    for t in (1.0, 4.0, 16.0):
+        img = white * response(lin * t) + 0.01
+        sig = np.sqrt(1e-3**2 + 2e-4 * img)
+        noisy = img + rng.normal(0, 1, img.shape) * sig
+        datas.append(FitData.from_array(noisy, sigma=sig, exposure=t, saturation=0.995))
+    assert datas[2].mask.sum() < datas[0].mask.sum()  # the clipped core is left out
+    flux_true = 0.35 / _numpy_star(**dict(TRUE, flux=1.0, background=0.0), disc=radius).max()
+    params = {
+        "rotation": Param(TRUE["rotation"]), "pixel_scale": Param(P),
+        "obstruction": Param(0.16), "strut_width": Param(0.06), "jitter": Param(0.0),
+        "x0": Param(0.0, True, (-2, 2)), "y0": Param(0.0, True, (-2, 2)),
+        "flux": Param(0.9 * flux_true, True, scale=0.1 * flux_true),
+        "background": Param(0.0, True, scale=1e-2),
+        "source_radius": Param(1.2, True, (0.0, 4.0)),
+        "knee": Param(12.0, True, (1.0, 100.0)), "toe": Param(toe), "white": Param(white),
+    }
+    model = ImageModel(obstructed_circle_pupil(0.425), params, light=Light.monochromatic(LAM),
+                       pad=6, accuracy=3e-3, source="disc", response=True)
+    res = fit(model, datas, per_capture=(), max_steps=40)
+    v = res.values
+    assert abs(v["source_radius"] - radius) < 0.03, v["source_radius"]
+    # the knee is seen only in the shoulder's few pixels: within 4 standard errors,
+    # and those a few per cent
+    assert abs(v["knee"] - knee) < 4 * res.errors["knee"] and res.errors["knee"] < 0.08 * knee
+    assert abs(v["flux"] / flux_true - 1) < 0.01
+    assert abs(v["x0"] - TRUE["x0"]) < 0.02 and abs(v["y0"] - TRUE["y0"]) < 0.02
+    assert res.chi2_dof < 1.5
+
+
+def test_user_image_source():
+    """A source given as an image (three points one pixel apart, weights 1:2:1): the
+    truth is the independent star at the three positions, weighted."""
+    w = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 1.0], [0.0, 0.0, 0.0]])
+    truth = sum(wi * _numpy_star(**dict(TRUE, x0=TRUE["x0"] + dx, background=0.0))
+                for dx, wi in ((-1, 1.0), (0, 2.0), (1, 1.0))) / 4 + TRUE["background"]
+    sigma = 2e-3 * truth.max()
+    data = FitData.from_array(truth + np.random.default_rng(2).normal(0, sigma, truth.shape),
+                              sigma=sigma)
+    model = ImageModel(obstructed_circle_pupil(0.425),
+                       {"rotation": Param(TRUE["rotation"]), "x0": Param(0.0, True, (-2, 2)),
+                        "y0": Param(0.0, True, (-2, 2)),
+                        "flux": Param(800.0, True, scale=100.0),
+                        "background": Param(0.0, True, scale=1.0), "pixel_scale": Param(P),
+                        "obstruction": Param(0.16), "strut_width": Param(0.06)},
+                       light=Light.monochromatic(LAM), pad=4, accuracy=3e-3, source=w)
+    res = fit(model, data, max_steps=30)
+    v = res.values
+    assert abs(v["x0"] - TRUE["x0"]) < 0.02 and abs(v["y0"] - TRUE["y0"]) < 0.02
+    assert abs(v["flux"] / TRUE["flux"] - 1) < 0.01
+    assert res.chi2_dof < 2.0
+
+
+def test_source_response_and_exposure_inputs_are_checked():
+    light = Light.monochromatic(LAM)
+    with pytest.raises(FitInputError, match="source"):
+        ImageModel(obstructed_circle_pupil(), {}, light=light, source="gaussian")
+    with pytest.raises(FitInputError, match="source image"):
+        ImageModel(obstructed_circle_pupil(), {}, light=light, source=-np.ones((3, 3)))
+    with pytest.raises(FitInputError, match="knee"):
+        ImageModel(obstructed_circle_pupil(), {"knee": Param(-1.0)}, light=light,
+                   response=True)
+    with pytest.raises(FitInputError, match="unknown parameters"):
+        ImageModel(obstructed_circle_pupil(), {"knee": Param(5.0)}, light=light)
+    with pytest.raises(FitInputError, match="source_radius"):
+        ImageModel(obstructed_circle_pupil(), {"source_radius": Param(-1.0)}, light=light,
+                   source="disc")
+    with pytest.raises(FitInputError, match="exposure"):
+        FitData.from_array(np.ones((8, 8)), sigma=1.0, exposure=0.0)
+    with pytest.raises(FitInputError, match="saturation"):
+        FitData.from_array(np.ones((8, 8)), sigma=1.0, saturation=float("nan"))
+    d = FitData.from_array(np.arange(64.0).reshape(8, 8), sigma=1.0, saturation=60.0)
+    assert d.mask.sum() == 60 and d.cropped(2).exposure == 1.0
+
+
+def test_disc_transform_against_scipy():
+    """2 J1(x)/x against SciPy's Bessel function, values and derivative (−2 J2(x)/x)."""
+    import jax
+    import scipy.special as sp
+
+    from difstar._fitting import disc_transform
+
+    x = np.linspace(1e-6, 150.0, 20001)
+    np.testing.assert_allclose(np.asarray(disc_transform(x)), 2 * sp.j1(x) / x, atol=5e-9)
+    g = np.asarray(jax.vmap(jax.grad(disc_transform))(x))
+    np.testing.assert_allclose(g, -2 * sp.jv(2, x) / x, atol=2e-8)
+    assert float(disc_transform(0.0)) == pytest.approx(1.0, abs=1e-9)
+    assert np.isfinite(float(jax.grad(disc_transform)(0.0)))

@@ -696,7 +696,7 @@ class ImageModel:
             big = np.zeros(shape)
             big[:sh, :sw] = src / src.sum()
             big = np.roll(big, (-(sh // 2), -(sw // 2)), axis=(0, 1))
-            self._source_ft[shape] = jnp.asarray(np.fft.rfft2(big))
+            self._source_ft[shape] = np.fft.rfft2(big)  # NumPy: a constant in any trace
         return self._source_ft[shape]
 
     def __call__(self, shape, values=None):
