@@ -19,32 +19,43 @@ import numpy as np
 
 
 def _figure(res, path, title):
+    """Data, model and residual on a log scale: one row per capture."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm, SymLogNorm
 
-    data, model, resid = res.data, res.model_image, res.residual
-    peak = float(np.max(data[res.mask]))
-    bg = res.values.get("background", 0.0)
-    lo = max(peak * 1e-4, 1e-12)
-    fig, ax = plt.subplots(1, 3, figsize=(13, 4.4), constrained_layout=True)
-    norm = LogNorm(vmin=lo, vmax=peak)
-    for a, img, name in ((ax[0], data - bg, "data − background"),
-                         (ax[1], model - bg, "model − background")):
-        im = a.imshow(np.clip(img, lo, None), norm=norm, cmap="magma", origin="upper")
-        a.set_title(name)
-    fig.colorbar(im, ax=ax[:2], shrink=0.85, label="counts (log)")
-    lin = peak * 1e-3
-    im2 = ax[2].imshow(resid / peak, cmap="RdBu_r",
-                       norm=SymLogNorm(linthresh=lin / peak, vmin=-0.1, vmax=0.1, base=10),
-                       origin="upper")
-    ax[2].set_title(f"residual / peak (RMS {100 * res.residual_rms_peak:.2f} %)")
-    fig.colorbar(im2, ax=ax[2], shrink=0.85, label="(data − model) / peak, symlog")
-    for a in ax:
-        a.set_xticks([])
-        a.set_yticks([])
+    def rows(x):
+        return x if isinstance(x, list) else [x]
+
+    datas, models, resids, masks = (rows(res.data), rows(res.model_image),
+                                    rows(res.residual), rows(res.mask))
+    n = len(datas)
+    fig, axes = plt.subplots(n, 3, figsize=(13, 4.4 * n), constrained_layout=True,
+                             squeeze=False)
+    for i, (ax, data, model, resid, mask) in enumerate(zip(axes, datas, models, resids,
+                                                           masks)):
+        peak = float(np.max(data[mask]))
+        bg = res.values.get("background", res.values.get(f"background@{i}", 0.0))
+        lo = max(peak * 1e-4, 1e-12)
+        norm = LogNorm(vmin=lo, vmax=peak)
+        cap = f" (capture {i})" if n > 1 else ""
+        for a, img, name in ((ax[0], data - bg, "data − background"),
+                             (ax[1], model - bg, "model − background")):
+            im = a.imshow(np.clip(img, lo, None), norm=norm, cmap="magma", origin="upper")
+            a.set_title(name + cap)
+        fig.colorbar(im, ax=ax[:2], shrink=0.85, label="counts (log)")
+        lin = peak * 1e-3
+        im2 = ax[2].imshow(np.where(mask, resid, 0.0) / peak, cmap="RdBu_r",
+                           norm=SymLogNorm(linthresh=lin / peak, vmin=-0.1, vmax=0.1, base=10),
+                           origin="upper")
+        rms = float(np.sqrt(np.mean(resid[mask] ** 2)) / peak)
+        ax[2].set_title(f"residual / peak (RMS {100 * rms:.2f} %)")
+        fig.colorbar(im2, ax=ax[2], shrink=0.85, label="(data − model) / peak, symlog")
+        for a in ax:
+            a.set_xticks([])
+            a.set_yticks([])
     fig.suptitle(title)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -60,8 +71,12 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
     ``fainter`` = (f1, …), also fit copies of the star f times fainter
     (:func:`difstar._fitting.fainter_copy`, stand-ins for other stars) and write
     fainter.json / .md."""
+    from ._fitting import FitInputError, load_manifest
     from .io._output import output_dir
 
+    if fainter and isinstance(load_manifest(manifest)[1], list):
+        raise FitInputError("--fainter takes a manifest with one capture (its data is a list "
+                            "of captures); leave --fainter out.")
     files = ["result.json", "fit.png", "model.npy"]
     if robustness:
         files += ["robustness.json", "robustness.md"]
@@ -139,7 +154,8 @@ def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose) -> dict:
     for i, start in enumerate(perturbed_starts(model, n, rel=PERTURB, seed=seed)):
         t = time.perf_counter()
         res = fit(model.with_values(start), data, stages=opts["stages"],
-                  max_steps=max_steps or opts["max_steps"], verbose=False)
+                  max_steps=max_steps or opts["max_steps"], verbose=False,
+                  per_capture=opts["per_capture"])
         dev = {k: (res.values[k] - ref[k]) / err[k] for k in res.free
                if err.get(k, 0) > 0 and np.isfinite(err[k])}
         rows.append({"start": start, "values": res.values, "status": res.status,
@@ -182,17 +198,23 @@ def _run(manifest, out, *, verbose, max_steps, final) -> dict:
     t0 = time.perf_counter()
     model, data, opts = load_manifest(manifest)
     res = fit(model, data, stages=opts["stages"], starts=opts["starts"],
-              max_steps=max_steps or opts["max_steps"], verbose=verbose)
+              max_steps=max_steps or opts["max_steps"], verbose=verbose,
+              per_capture=opts["per_capture"])
     wall = time.perf_counter() - t0
     out = Path(out)
     man = opts["manifest"]
     sp = man.get("spikes", {})
-    h, w = data.image.shape
-    centre = (w // 2 + res.values["x0"], h // 2 + res.values["y0"])
-    bgsub = np.where(data.mask, data.image - res.values["background"], 0.0)
+    # spike angles of the first capture (the others share the pupil)
+    first = data[0] if isinstance(data, list) else data
+    mimg = res.model_image[0] if isinstance(data, list) else res.model_image
+    v0 = {**res.values, **{k.split("@")[0]: x for k, x in res.values.items()
+                           if k.endswith("@0")}}
+    h, w = first.image.shape
+    centre = (w // 2 + v0["x0"], h // 2 + v0["y0"])
+    bgsub = np.where(first.mask, first.image - v0["background"], 0.0)
     measured = spike_angles(bgsub, centre, r_min=sp.get("r_min", 15), r_max=sp.get("r_max", 40),
                             n_spikes=sp.get("n_spikes", 8))
-    modelled = spike_angles(res.model_image - res.values["background"], centre,
+    modelled = spike_angles(mimg - v0["background"], centre,
                             r_min=sp.get("r_min", 15), r_max=sp.get("r_max", 40),
                             n_spikes=sp.get("n_spikes", 8))
     summary = {
@@ -218,7 +240,7 @@ def _run(manifest, out, *, verbose, max_steps, final) -> dict:
         "noise": next((st["noise"] for st in reversed(res.stages) if "noise" in st), None),
     }
     (out / "result.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
-    np.save(out / "model.npy", res.model_image)
+    np.save(out / "model.npy", np.asarray(res.model_image))  # (N, H, W) for N captures
     _figure(res, out / "fit.png", man.get("name", Path(manifest).parent.name))
     if verbose:
         print(res.summary())

@@ -1369,10 +1369,40 @@ def _resolve(path: str, manifest_dir) -> str:
                         f"{', '.join(str(c.parent) for c in cands[:3])}).")
 
 
+def _load_capture(d: Mapping, where, manifest_dir) -> FitData:
+    """One capture of a manifest's ``data``: its file, window, noise, exposure and
+    saturation level."""
+    if not isinstance(d, Mapping) or "path" not in d:
+        raise FitInputError(f"manifest: {where} needs a 'path' (the image file).")
+    noise = d.get("noise", {})
+    return FitData.from_file(_resolve(d["path"], manifest_dir), roi=d.get("roi"),
+                             sigma=d.get("sigma"),
+                             noise=Noise(noise.get("read"), float(noise.get("gain", 1.0)),
+                                         float(noise.get("floor", 0.0))),
+                             exposure=float(d.get("exposure", 1.0)),
+                             saturation=d.get("saturation"))
+
+
+def _load_source(src, manifest_dir):
+    """The manifest's ``source``: "point", "disc" or {"image": path} (FITS, TIFF, PNG or
+    .npy: the source as the data's pixels see it)."""
+    if isinstance(src, Mapping):
+        if set(src) != {"image"}:
+            raise FitInputError("manifest: source must be 'point', 'disc' or {'image': path}; "
+                                f"got {dict(src)}.")
+        from .io import read_image
+
+        return np.asarray(read_image(_resolve(src["image"], manifest_dir)).data, float)
+    return src
+
+
 def load_manifest(path):
     """(model, data, options) from an image-fit manifest (JSON; see
-    data_schemas/image_fit_manifest.schema.json). ``options``: stages, starts,
-    max_steps, the raw manifest."""
+    data_schemas/image_fit_manifest.schema.json). ``data`` is a FitData, or a list of
+    them when the manifest's ``data`` is a list of captures (exposures, dithers, an
+    exposure bracket); then ``options["per_capture"]`` names the parameters each capture
+    has its own of. ``options``: stages, starts, max_steps, per_capture, the raw
+    manifest."""
     import json
     from pathlib import Path
 
@@ -1384,12 +1414,14 @@ def load_manifest(path):
     for key in ("data", "pupil", "light", "params"):
         if key not in man:
             raise FitInputError(f"manifest {path}: missing {key!r}.")
-    d = man["data"]
-    noise = d.get("noise", {})
-    fd = FitData.from_file(_resolve(d["path"], path.parent), roi=d.get("roi"),
-                           sigma=d.get("sigma"),
-                           noise=Noise(noise.get("read"), float(noise.get("gain", 1.0)),
-                                       float(noise.get("floor", 0.0))))
+    several = isinstance(man["data"], list)
+    caps = man["data"] if several else [man["data"]]
+    if not caps:
+        raise FitInputError(f"manifest {path}: 'data' is an empty list (give one capture "
+                            "or more).")
+    fds = [_load_capture(d, f"data[{i}]" if several else "data", path.parent)
+           for i, d in enumerate(caps)]
+    fd = fds[0]
     pu = dict(man["pupil"])
     kind = pu.pop("builder")
     if kind not in BUILDERS:
@@ -1409,7 +1441,7 @@ def load_manifest(path):
     edge[b:-b, b:-b] = False
     bg = float(np.median(fd.image[edge & fd.mask]))
     auto = {"pixel_scale": fd.pixel_scale, "background": bg,
-            "flux": float(np.sum(img - bg))}
+            "flux": float(np.sum(img - bg)) / fd.exposure}
     for k, spec in list(params.items()):
         if isinstance(spec, dict) and spec.get("value") in ("header", "auto"):
             if auto.get(k) is None:
@@ -1423,8 +1455,10 @@ def load_manifest(path):
             params[k].pop("bounds_relative", None)
     model = ImageModel(builder, params, light=light, zernike=man.get("zernike", ()),
                        oversample=float(det.get("oversample", 1.0)), pad=int(det.get("pad", 8)),
-                       accuracy=float(man.get("accuracy", 1e-2)))
+                       accuracy=float(man.get("accuracy", 1e-2)),
+                       source=_load_source(man.get("source", "point"), path.parent),
+                       response=bool(det.get("response", False)))
     opts = {"stages": man.get("stages"), "starts": man.get("starts"),
             "max_steps": int(man.get("max_steps", 100)), "manifest": man,
-            "builder": kind}
-    return model, fd, opts
+            "builder": kind, "per_capture": man.get("per_capture")}
+    return model, (fds if several else fd), opts

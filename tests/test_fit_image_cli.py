@@ -1,0 +1,107 @@
+"""``difstar fit-image`` (difstar._fit_image_cli) end to end on a manifest of two
+captures (an exposure bracket of a disc source, one shared flux) made by the
+independent NumPy generator of tests/test_fitting.py: the manifest validates against
+its schema, the fit recovers the generator's values, the outputs are written whole,
+nothing is overwritten without --overwrite, and bad requests exit 2 with a message."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+from test_fitting import LAM, P, TRUE, _numpy_star
+
+from difstar._fit_image_cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+RADIUS = 1.3  # disc source, data pixels
+
+
+@pytest.fixture(scope="module")
+def bracket(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bracket")
+    lin = _numpy_star(**dict(TRUE, background=0.0), disc=RADIUS)
+    rng = np.random.default_rng(4)
+    caps = []
+    for i, t in enumerate((1.0, 4.0)):
+        img = t * lin + TRUE["background"]
+        sigma = 2e-3 * lin.max()
+        np.save(d / f"cap{i}.npy", img + rng.normal(0, sigma, img.shape))
+        caps.append({"path": f"cap{i}.npy", "sigma": sigma, "exposure": t})
+    man = {
+        "name": "bracket",
+        "data": caps,
+        "per_capture": ["background"],
+        "pupil": {"builder": "circle", "radius": 0.425},
+        "light": {"wavelength": LAM},
+        "source": "disc",
+        "detector": {"pad": 4},
+        "accuracy": 3e-3,
+        "params": {
+            "rotation": TRUE["rotation"], "pixel_scale": P, "obstruction": 0.16,
+            "strut_width": 0.06,
+            "x0": {"value": 0.0, "free": True, "bounds": [-2, 2]},
+            "y0": {"value": 0.0, "free": True, "bounds": [-2, 2]},
+            "flux": {"value": 900.0, "free": True, "scale": 100.0},
+            "background": {"value": 0.0, "free": True, "scale": 1.0},
+            "source_radius": {"value": 1.0, "free": True, "bounds": [0.0, 3.0]},
+        },
+        "stages": [{"free": "all", "max_steps": 30}],
+    }
+    path = d / "manifest.json"
+    path.write_text(json.dumps(man))
+    return path
+
+
+def test_manifest_validates_against_the_schema(bracket):
+    schema = json.loads((ROOT / "data_schemas" / "image_fit_manifest.schema.json").read_text())
+    jsonschema.validate(json.loads(bracket.read_text()), schema)
+    for m in ("jwst-nircam", "spitzer-irac"):
+        jsonschema.validate(json.loads((ROOT / "fit" / m / "manifest.json").read_text()),
+                            schema)
+
+
+@pytest.mark.slow
+def test_fit_image_cli_bracket_end_to_end(bracket, capsys):
+    out = bracket.parent / "out"
+    assert main([str(bracket), "--out", str(out), "--quiet"]) == 0
+    res = json.loads((out / "result.json").read_text())
+    v = res["values"]
+    assert abs(v["x0"] - TRUE["x0"]) < 0.02 and abs(v["y0"] - TRUE["y0"]) < 0.02
+    assert abs(v["flux"] / TRUE["flux"] - 1) < 0.01
+    assert abs(v["source_radius"] - RADIUS) < 0.05
+    assert "background@1" in res["free"] and "flux@1" not in res["free"]
+    assert res["chi2_dof"] < 2.0
+    assert np.load(out / "model.npy").shape == (2, 19, 19)
+    assert (out / "fit.png").stat().st_size > 10_000
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    # nothing is overwritten without --overwrite; a bracket cannot make fainter copies
+    assert main([str(bracket), "--out", str(out), "--quiet"]) == 2
+    assert "overwrite" in capsys.readouterr().err
+    assert main([str(bracket), "--out", str(bracket.parent / "o2"), "--quiet",
+                 "--fainter", "4"]) == 2
+    assert "one capture" in capsys.readouterr().err
+    assert not (bracket.parent / "o2").exists()
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_bad_manifests_exit_2_with_the_field_named(tmp_path, capsys):
+    bad = tmp_path / "m.json"
+    bad.write_text(json.dumps({"data": [], "pupil": {"builder": "circle"},
+                               "light": {"wavelength": LAM}, "params": {}}))
+    assert main([str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "empty list" in capsys.readouterr().err
+    bad.write_text(json.dumps({"data": [{"sigma": 1.0}], "pupil": {"builder": "circle"},
+                               "light": {"wavelength": LAM}, "params": {}}))
+    assert main([str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "data[0]" in capsys.readouterr().err
+    np.save(tmp_path / "img.npy", np.ones((9, 9)))
+    bad.write_text(json.dumps({"data": {"path": "img.npy", "sigma": 1.0},
+                               "pupil": {"builder": "circle"}, "source": {"file": "x"},
+                               "light": {"wavelength": LAM}, "params": {}}))
+    assert main([str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "source" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
