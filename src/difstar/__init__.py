@@ -105,6 +105,7 @@ from ._fitting import Noise as Noise
 from ._fitting import Param as Param
 from ._fitting import PupilBuilder as PupilBuilder
 from ._fitting import fit as fit_image
+from ._fitting import iris_pupil as iris_pupil
 from ._fitting import jwst_pupil as jwst_pupil
 from ._fitting import load_manifest as load_fit_manifest
 from ._fitting import obstructed_circle_pupil as obstructed_circle_pupil

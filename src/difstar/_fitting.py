@@ -151,7 +151,25 @@ def obstructed_circle_pupil(radius: float = 0.425) -> PupilBuilder:
                                           "strut_width": 0.03}, max_radius=1.1 * radius)
 
 
-BUILDERS = {"jwst": jwst_pupil, "circle": obstructed_circle_pupil}
+def iris_pupil(blades: int = 7, radius: float = 1.2e-3) -> PupilBuilder:
+    """A camera's iris: ``blades`` blades with circular-arc edges (a regular polygon when
+    ``curvature`` is 0; difstar's ``CurvedIris``), its first vertex on +x at rotation 0.
+    Parameters: ``iris_radius`` (circumradius, metres; the aperture's radius is focal
+    length / (2 N)) and ``curvature`` (each edge's relative curvature, R·κ: 0 straight,
+    1 an arc of the circle through the vertices)."""
+    from ._pupil_curved import CurvedIris
+
+    if not isinstance(blades, (int, np.integer)) or blades < 3:
+        raise FitInputError(f"iris_pupil: blades must be an integer >= 3; got {blades!r}.")
+
+    def build(v):
+        return CurvedIris(int(blades), v["iris_radius"], v["curvature"])
+
+    return PupilBuilder("iris", build, {"iris_radius": radius, "curvature": 0.0},
+                        max_radius=1.2 * radius)
+
+
+BUILDERS = {"jwst": jwst_pupil, "circle": obstructed_circle_pupil, "iris": iris_pupil}
 
 
 # --- light, detector, data -----------------------------------------------------------------
