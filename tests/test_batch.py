@@ -23,10 +23,9 @@ import pytest
 from difstar import _batch as B
 from difstar._validate import InputError
 
-#: several host devices, one thread each (with a multi-threaded Eigen pool shared by as
-#: many devices as cores, concurrent device programs can wait on each other for ever)
-HOST_FLAGS = ("--xla_force_host_platform_device_count=4 --xla_cpu_multi_thread_eigen=false "
-              "intra_op_parallelism_threads=1")
+#: several host devices, their Eigen operations single-threaded (so that 4 devices on 2
+#: cores do not oversubscribe them)
+HOST_FLAGS = "--xla_force_host_platform_device_count=4 --xla_cpu_multi_thread_eigen=false"
 
 
 def test_device_count_refuses_bad_values_naming_the_flag(monkeypatch):
@@ -189,3 +188,71 @@ def test_fit_devices_without_a_study_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and err.count("\n") == 0 and "--devices" in err
     assert not (tmp_path / "out").exists()
+
+
+HANG_CHILD = textwrap.dedent('''
+    import faulthandler, json, sys, time
+    faulthandler.dump_traceback_later(float(sys.argv[1]), exit=True)  # a hang fails loudly
+    import jax, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    from difstar import _batch as B
+    sys.path.insert(0, "tests")
+    from test_fit import F, _data, _model, _start
+    model = _model()
+    fitter, data = _data(model, noise_sigma=1e-3)
+    u0 = np.stack([np.asarray(_start(model, 0.1, seed=s)) for s in range(8)])
+    arg = [F.make_args(model, data, u) for u in u0]
+    args = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *arg)
+    out = {"devices": jax.device_count()}
+    t0 = time.perf_counter()
+    plans = []
+    many = B.solve_many(fitter, u0, args, devices=4, max_steps=3, chunk=8, plan_out=plans)
+    out["seconds_4"] = time.perf_counter() - t0
+    out["per_device"] = plans[0].per_device
+    one = B.solve_many(fitter, u0, args, devices=1, max_steps=3)
+    out["du"] = max(float(np.abs(a.u - b.u).max()) for a, b in zip(many, one))
+    out["moved"] = max(float(np.abs(a.u - u).max()) for a, u in zip(one, u0))
+
+    # the recovery study's path: ordinary one-fit code in threads, two solves each,
+    # gathered into batched rounds on 4 devices
+    def job(i):
+        def run(f):
+            r = f.solve(u0[i], arg[i], max_steps=2)
+            return f.solve(r.u, arg[i], max_steps=1)
+        return run
+    got = B.FitBatcher(fitter, devices=4).run([job(i) for i in range(8)])
+    two = B.solve_many(fitter, u0, args, devices=1, max_steps=2)
+    two = B.solve_many(fitter, np.stack([t.u for t in two]), args, devices=1, max_steps=1)
+    out["batcher_du"] = max(float(np.abs(np.asarray(g.u) - o.u).max())
+                            for g, o in zip(got, two))
+    print("RESULT " + json.dumps(out), flush=True)
+''')
+
+
+@pytest.mark.slow
+def test_many_fits_on_host_cpu_devices_finish():
+    """The hang of issue 17: jaxlib's CPU LAPACK kernels split a batch of matrices over
+    XLA's CPU thread pool and block the pool thread waiting; several host devices each
+    solving a batch of fits at once took every pool thread and stopped for ever.
+    ``NPROC=2`` fixes the pool at 2 threads on any machine, 4 devices with 2 fits each
+    reach their solves together: this hung before solve_many took a device's fits in
+    turn on CPU. The child dumps its stacks and exits if it runs past the limit."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", NPROC="2")
+    env.pop(B.ENV_DEVICES, None)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    limit = 400
+    try:
+        p = subprocess.run([sys.executable, "-c", HANG_CHILD, str(limit)], cwd=root, env=env,
+                           capture_output=True, text=True, timeout=limit + 60)
+    except subprocess.TimeoutExpired as e:
+        pytest.fail(f"many fits on 4 host devices hung (no result in {limit + 60} s): "
+                    f"{(e.stderr or b'')[-3000:]!r}")
+    line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
+    assert p.returncode == 0 and line, (
+        f"many fits on 4 host devices did not finish (exit {p.returncode}; a "
+        f"'Timeout' traceback means it hung):\n{p.stderr[-3000:]}")
+    r = json.loads(line[-1][7:])
+    assert r["devices"] == 4 and r["per_device"] == 2, r
+    assert r["moved"] > 1e-3, r  # the fits did step
+    # the same per-fit code on 4 devices and on 1: the same numbers
+    assert r["du"] < 1e-12 and r["batcher_du"] < 1e-12, r

@@ -198,13 +198,48 @@ def gather(tree):
     return jax.tree_util.tree_map(np.asarray, tree)
 
 
-def sharded_vmap(fn, mesh: Mesh):
+def per_item(fn, in_turn: bool = False):
+    """``fn`` over a leading axis: ``jax.vmap(fn)``, or with ``in_turn`` the items one
+    after another (``jax.lax.map``), each call of ``fn`` on one item as unbatched code."""
+    if in_turn:
+        return lambda *xs: jax.lax.map(lambda x: fn(*x), xs)
+    return jax.vmap(fn)
+
+
+def sharded_vmap(fn, mesh: Mesh, *, in_turn: bool = False):
     """``jit(shard_map(vmap(fn)))``: each device maps ``fn`` over its own slice of every
     argument's leading axis (array pytrees in and out), one program, no collective: a
     mesh-wide ``jit`` would leave the split to XLA's partitioner, which can gather the
-    batch around loops (seen in the fit's solver step)."""
-    return jax.jit(jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=P(AXIS),
+    batch around loops (seen in the fit's solver step). ``in_turn``: each device takes
+    its items one after another (:func:`per_item`; see :func:`lapack_in_turn`)."""
+    return jax.jit(jax.shard_map(per_item(fn, in_turn), mesh=mesh, in_specs=P(AXIS),
                                  out_specs=P(AXIS), check_vma=False))
+
+
+def lapack_in_turn(lowered, device) -> bool:
+    """Whether a device's items must run one after another rather than as one batch:
+    on CPU devices, when the program calls LAPACK (a QR, Cholesky, LU, eigen or SVD
+    custom call: every least-squares solve).
+
+    Why: jaxlib's CPU LAPACK kernels (``lapack_*_ffi``, jaxlib 0.10) split a *batch* of
+    matrices over XLA's CPU intra-op thread pool and block the pool thread that runs
+    them until the pieces are done (``jax::ParallelBatchMap`` → ``BlockingCounter::
+    Wait``). The pool has one thread per core and is shared by every host CPU device of
+    the process; when as many device programs as the pool has threads reach a batched
+    LAPACK call at once, every thread waits for pieces that no thread is left to run, and
+    the process stops for ever (stacks taken with gdb on the 2-core machine: both
+    ``tf_XLAEigen`` threads in ``QrFactorization::Kernel`` → ``ParallelBatchMap`` →
+    ``BlockingCounter::Wait``, the main thread in ``np.asarray`` of the first step). A
+    batch of one matrix runs on the calling thread, so items taken in turn never wait on
+    the pool. ``--xla_cpu_multi_thread_eigen=false`` does not change this pool. GPUs (and
+    batches without LAPACK, such as the spectral PSFs) keep ``vmap``."""
+    if getattr(device, "platform", "") != "cpu":
+        return False
+    try:
+        text = lowered.as_text()
+    except Exception:  # cannot tell: the safe choice on CPU
+        return True
+    return "lapack_" in text
 
 
 def _per_device_bytes(compiled) -> int | None:
@@ -292,11 +327,17 @@ def map_batch(fn: Callable, batch: Any, *, devices=None, chunk=None,
 
     plan = plan_chunks(n_items, nd, chunk=chunk)
     compiled = {}
-    if chunk is None and plan.per_device > 1:
-        # the bytes of one item per device, from the compiled program
-        compiled[nd] = run.lower(padded(np.arange(min(nd, n_items)), nd)).compile()
-        b = _per_device_bytes(compiled[nd])
-        plan = plan_chunks(n_items, nd, item_bytes=b, free_bytes=device_memory())
+    in_turn = False
+    if plan.per_device > 1:
+        # one item per device: the program's bytes per item, and whether it calls LAPACK
+        lowered = run.lower(padded(np.arange(min(nd, n_items)), nd))
+        in_turn = lapack_in_turn(lowered, mesh.devices.flat[0])
+        if chunk is None:
+            compiled[nd] = lowered.compile()
+            b = _per_device_bytes(compiled[nd])
+            plan = plan_chunks(n_items, nd, item_bytes=b, free_bytes=device_memory())
+    if in_turn and plan.per_device > 1:  # batched LAPACK on host CPU devices can hang
+        run = sharded_vmap(fn, mesh, in_turn=True)
     run = compiled.get(plan.chunk, run)  # the probe serves when chunks hold one per device
     if plan_out is not None:
         plan_out.append(plan)
@@ -328,6 +369,31 @@ class ItemSolve:
     compile_seconds: float
 
 
+def _batched_steps(fitter, in_turn: bool):
+    """The fitter's init and step over a leading axis of fits (:func:`per_item`), jitted
+    once per fitter and kept on it, so that a recovery study's many solve rounds compile
+    each shape once (new closures per call would compile every round)."""
+    cache = vars(fitter).setdefault("_difstar_batched_steps", {})
+    if in_turn not in cache:
+        box = {}
+
+        def init_one(u, a):
+            dyn, static = eqx.partition(fitter._init(u, a), eqx.is_array)
+            box["static"] = static  # the same for every item (trace-time structure)
+            return dyn
+
+        def step_one(u, dyn, a, hold):
+            state = eqx.combine(dyn, box["static"])
+            u2, s2, done, ok, loss, size, acc = fitter._step(u, state, a)
+            d2, _ = eqx.partition(s2, eqx.is_array)
+            d2 = jax.tree_util.tree_map(lambda new, old: jnp.where(hold, old, new), d2, dyn)
+            return jnp.where(hold, u, u2), d2, done, ok, loss, acc
+
+        cache[in_turn] = (jax.jit(per_item(init_one, in_turn)),
+                          jax.jit(per_item(step_one, in_turn)))
+    return cache[in_turn]
+
+
 def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: float = 1e-6,
                chunk=None, progress: Callable[[int, ItemSolve], None] | None = None,
                plan_out: list | None = None) -> list[ItemSolve]:
@@ -344,9 +410,11 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
     Each device runs its own slice as a program of its own (one compile per device):
     under ``shard_map`` lineax compares the residuals' structure with one that carries
     the mesh and refuses the solve, and a mesh-wide ``jit`` makes XLA's partitioner
-    gather the batch around the solver's loops (collectives that hang on host CPU
-    devices). In a multi-process job each process steps its own devices' fits and the
-    results are gathered at the end.
+    gather the batch around the solver's loops. On CPU devices a device's fits step
+    one after another inside its program (:func:`lapack_in_turn`: batched LAPACK calls
+    of several host devices at once exhaust XLA's CPU thread pool and hang); elsewhere
+    they are ``vmap``-ed. In a multi-process job each process steps its own devices' fits
+    and the results are gathered at the end.
     """
     from ._lm import StopRule
 
@@ -358,32 +426,25 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
     devs = list(mesh.devices.flat)
     nd = len(devs)
     me = jax.process_index()
-    box = {}
-
-    def init_one(u, a):
-        dyn, static = eqx.partition(fitter._init(u, a), eqx.is_array)
-        box["static"] = static  # the same for every item (trace-time structure)
-        return dyn
-
-    def step_one(u, dyn, a, hold):
-        state = eqx.combine(dyn, box["static"])
-        u2, s2, done, ok, loss, size, acc = fitter._step(u, state, a)
-        d2, _ = eqx.partition(s2, eqx.is_array)
-        d2 = jax.tree_util.tree_map(lambda new, old: jnp.where(hold, old, new), d2, dyn)
-        return jnp.where(hold, u, u2), d2, done, ok, loss, acc
-
-    init, step = jax.jit(jax.vmap(init_one)), jax.jit(jax.vmap(step_one))
+    init, step = _batched_steps(fitter, False)
 
     def put(tree, dev):
         return jax.tree_util.tree_map(lambda x: jax.device_put(np.asarray(x), dev), tree)
 
     plan = plan_chunks(n_items, nd, chunk=chunk)
-    if chunk is None and plan.per_device > 1:
+    in_turn = False
+    if plan.per_device > 1:
+        # one item: the step's bytes per item, and whether it calls LAPACK (it does on
+        # CPU: the solver's linear solve), see lapack_in_turn
         ex = put(_take({"u": u0, "a": args}, np.zeros(1, dtype=int)), devs[0])
         dyn = init(ex["u"], ex["a"])
-        probe = step.lower(ex["u"], dyn, ex["a"], put(np.zeros(1, bool), devs[0])).compile()
-        plan = plan_chunks(n_items, nd, item_bytes=_per_device_bytes(probe),
-                           free_bytes=device_memory(devs[0]))
+        lowered = step.lower(ex["u"], dyn, ex["a"], put(np.zeros(1, bool), devs[0]))
+        in_turn = lapack_in_turn(lowered, devs[0])
+        if chunk is None:
+            plan = plan_chunks(n_items, nd, item_bytes=_per_device_bytes(lowered.compile()),
+                               free_bytes=device_memory(devs[0]))
+    if in_turn and plan.per_device > 1:  # each device's fits one after another
+        init, step = _batched_steps(fitter, True)
     if plan_out is not None:
         plan_out.append(plan)
     size, k_dev = plan.chunk, plan.per_device
@@ -627,5 +688,5 @@ def simulate_spectral(camera, scene, grid, *, devices=None, chunk=None,
 __all__ = [
     "AXIS", "ENV_DEVICES", "FILL", "FitBatcher", "ItemSolve", "Plan", "device_count", "device_memory",
     "device_mesh", "gather", "init_distributed", "map_batch", "plan_chunks", "shard",
-    "sharded_vmap", "simulate_spectral", "solve_many",
+    "lapack_in_turn", "per_item", "sharded_vmap", "simulate_spectral", "solve_many",
 ]
