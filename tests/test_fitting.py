@@ -6,6 +6,7 @@ manifest."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -34,7 +35,7 @@ TRUE = {"x0": 0.31, "y0": -0.22, "rotation": 4.0, "flux": 1000.0, "background": 
 
 def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n=1024,
                 radius=0.425, obstruction=0.16, strut_width=0.06, z4=0.0, disc=0.0,
-                blades=0):
+                blades=0, lam=LAM):
     """Fraction of power per data pixel by a NumPy FFT of a pupil raster (y up), then
     ``flux`` × that + ``background``. Independent of difstar's engine. ``z4``: Noll
     defocus (m RMS over the radius 1.1 ``radius``, the circle builder's max_radius),
@@ -45,7 +46,7 @@ def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n
     ``blades`` > 0: instead of the obstructed circle, a regular polygon of that many
     sides and circumradius ``radius``, its first vertex at ``rotation`` degrees from +x."""
     delta = P * ARCSEC / fine  # rad per fine sample
-    dx = LAM / (n * delta)  # pupil sample (m)
+    dx = lam / (n * delta)  # pupil sample (m)
     half = int(math.ceil(1.05 * radius / dx))
     ss = 4  # anti-aliasing sub-samples a side
     u = (np.arange(-half * ss, half * ss) + 0.5) / ss * dx
@@ -65,10 +66,10 @@ def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n
     xc = (np.arange(-half, half) + 0.5) * dx
     ax = 1.5 * delta + x0 * P * ARCSEC
     ay = 1.5 * delta - y0 * P * ARCSEC
-    field = cov * np.exp(2j * math.pi * (xc[None, :] * ax + xc[:, None] * ay) / LAM)
+    field = cov * np.exp(2j * math.pi * (xc[None, :] * ax + xc[:, None] * ay) / lam)
     if z4:
         rho2 = (xc[None, :] ** 2 + xc[:, None] ** 2) / (1.1 * radius) ** 2
-        field = field * np.exp(-2j * math.pi * z4 * math.sqrt(3) * (2 * rho2 - 1) / LAM)
+        field = field * np.exp(-2j * math.pi * z4 * math.sqrt(3) * (2 * rho2 - 1) / lam)
     big = np.zeros((n, n), complex)
     big[:2 * half, :2 * half] = field
     inten = np.abs(np.fft.fftshift(np.fft.fft2(big))) ** 2 / (n * n * np.sum(cov))
@@ -333,6 +334,48 @@ def test_fit_from_a_raw_mosaic_of_the_independent_star(tmp_path, pattern):
     assert 0.5 < res.chi2_dof < 2.0  # the noise model is right
     with pytest.raises(FitInputError, match="channel"):
         FitData.from_raw(path, channel="Y", gain_e_per_dn=gain, read_noise_dn=read)
+
+
+def test_three_colours_of_one_raw_in_their_own_bands(tmp_path):
+    """One Bayer DNG whose R, G and B photosites see the independent star at 4.4, 3.6
+    and 3.0 µm (each colour its own flux): its three colours fitted together, each in
+    its own light, share the centre and rotation and keep their own flux."""
+    from difstar.io import write_dng
+
+    lams = {"R": 4.4e-6, "G": 3.6e-6, "B": 3.0e-6}
+    fluxes = {"R": 2.0e5, "G": 3.0e5, "B": 1.5e5}
+    pattern = "RGGB"
+    colour = np.tile(np.array(list(pattern)).reshape(2, 2), (12, 12))
+    clean = np.zeros((24, 24))
+    for c in "RGB":
+        star = _numpy_star((25, 25), **dict(TRUE, flux=fluxes[c], background=0.0),
+                           lam=lams[c])[:24, :24]
+        clean = np.where(colour == c, star, clean)
+    black, white, gain, read = 512, 65535, 2.0, 3.0
+    rng = np.random.default_rng(6)
+    dn = black + rng.poisson(clean * gain) / gain + rng.normal(0, read, clean.shape)
+    raw = np.clip(np.round(dn), 0, white).astype(np.uint16)
+    path = write_dng(tmp_path / "rgb.dng", raw, pattern=pattern, black_level=black,
+                     white_level=white)
+    datas = [FitData.from_raw(path, channel=c, gain_e_per_dn=gain, read_noise_dn=read,
+                              pixel_scale=P, light=Light.monochromatic(lams[c]))
+             for c in "RGB"]
+    scale = white - black
+    model = _model(rotation=Param(TRUE["rotation"]),
+                   flux=Param(2e5 / scale, True, scale=0.5),
+                   background=Param(0.0, True, scale=1e-3))
+    res = fit(model, datas, per_capture=("flux", "background"), max_steps=40)
+    v = res.values
+    assert abs(v["x0"] - TRUE["x0"]) < 0.03 and abs(v["y0"] - TRUE["y0"]) < 0.03
+    for i, c in enumerate("RGB"):
+        assert abs(v[f"flux@{i}"] * scale / fluxes[c] - 1) < 0.02, (c, v[f"flux@{i}"])
+    assert 0.5 < res.chi2_dof < 2.0
+    # in one light for all three, the fit is measurably worse: the bands matter
+    wrong = fit(model, [dataclasses.replace(d, light=None) for d in datas],
+                per_capture=("flux", "background"), max_steps=40)
+    assert wrong.chi2_dof > 2 * res.chi2_dof
+    with pytest.raises(FitInputError, match="light"):
+        FitData.from_array(np.ones((8, 8)), sigma=1.0, light=3.6e-6)
 
 
 def test_two_captures_share_the_pupil_and_keep_their_own_centres(synthetic):

@@ -231,7 +231,9 @@ class FitData:
     ``exposure``: this capture's relative exposure (time × gain; 1 by default); the
     model's ``flux`` is multiplied by it, so the captures of an exposure bracket can
     share one flux (leave ``flux`` out of ``per_capture``). ``saturation``: pixels at or
-    above this level are not used (the sensor clipped them)."""
+    above this level are not used (the sensor clipped them). ``light``: this capture's
+    :class:`Light` where it differs from the model's (the R, G and B photosites of one
+    RAW fitted together, each in its own band)."""
 
     image: np.ndarray
     sigma: np.ndarray
@@ -239,10 +241,12 @@ class FitData:
     pixel_scale: float | None = None
     path: str | None = None
     exposure: float = 1.0
+    light: Any = None
 
     @staticmethod
     def from_array(image, *, sigma=None, noise: Noise | None = None, mask=None, roi=None,
-                   pixel_scale=None, path=None, exposure=1.0, saturation=None) -> FitData:
+                   pixel_scale=None, path=None, exposure=1.0, saturation=None,
+                   light=None) -> FitData:
         exposure = float(exposure)
         if not (math.isfinite(exposure) and exposure > 0):
             raise FitInputError(f"FitData: exposure must be a finite number > 0 (a relative "
@@ -288,7 +292,10 @@ class FitData:
         if np.any(~np.isfinite(sigma[m])) or np.any(sigma[m] <= 0):
             raise FitInputError("FitData: sigma must be finite and > 0 on every used pixel.")
         sigma[~m] = 1.0
-        return FitData(img, sigma, m, pixel_scale, path, exposure)
+        if light is not None and not isinstance(light, Light):
+            raise FitInputError("FitData: light must be a difstar Light (Light.monochromatic or "
+                                f"Light.band); got {type(light).__name__}.")
+        return FitData(img, sigma, m, pixel_scale, path, exposure, light)
 
     @staticmethod
     def from_file(path, **kw) -> FitData:
@@ -302,7 +309,7 @@ class FitData:
 
     @staticmethod
     def from_raw(raw, *, channel="G", gain_e_per_dn, read_noise_dn, roi=None,
-                 pixel_scale=None) -> FitData:
+                 pixel_scale=None, exposure=1.0, light=None) -> FitData:
         """The pixels of one colour of a Bayer RAW mosaic as data for the image fit.
 
         ``raw``: a path (read by :func:`difstar.io.read_raw`: any Bayer layout LibRaw
@@ -315,7 +322,8 @@ class FitData:
         Poisson in electrons), divided by (white − black)². ``roi`` = (row0, row1, col0,
         col1) cuts a window around the source (keep row0 and col0 even to keep the
         pattern's phase — any offset works, the mask follows the photosites).
-        ``pixel_scale``: arcsec per pixel (pitch / focal length)."""
+        ``pixel_scale``: arcsec per pixel (pitch / focal length). ``exposure`` and
+        ``light``: as for :meth:`from_array` (the channel's band)."""
         from ._cfa import channel_index
         from .io import read_raw
         from .io._raw import RawCapture
@@ -333,7 +341,8 @@ class FitData:
         sigma = np.sqrt(read_noise_dn**2 + signal_dn / gain_e_per_dn) / scale
         mask = (colour == "RGB".index(channel)) & ~cap.saturated
         return FitData.from_array(cap.cfa, sigma=sigma, mask=mask, roi=roi,
-                                  pixel_scale=pixel_scale, path=str(cap.path))
+                                  pixel_scale=pixel_scale, path=str(cap.path),
+                                  exposure=exposure, light=light)
 
     def annulus(self, r_min: float, r_max: float) -> FitData:
         """Only the pixels between ``r_min`` and ``r_max`` pixels of the centre pixel
@@ -628,10 +637,12 @@ class ImageModel:
         vals = [p.value] + (list(p.bounds) if (p.free and p.bounds) else [])
         return pick(vals)
 
-    def plan(self, shape):
-        """The PSF plan for an output window ``shape`` (data pixels, padding included),
-        made once with the largest angular scale and wavefront slope the bounds allow."""
-        key = tuple(shape)
+    def plan(self, shape, light: Light | None = None):
+        """The PSF plan for an output window ``shape`` (data pixels, padding included) and
+        ``light`` (default: the model's), made once with the largest angular scale and
+        wavefront slope the bounds allow."""
+        light = self.light if light is None else light
+        key = (tuple(shape), tuple(light.wavelengths))
         if key in self._plans:
             return self._plans[key]
         ang = self._bound("pixel_scale", min) * ARCSEC
@@ -645,8 +656,8 @@ class ImageModel:
         zern = Zernike(coeffs, r) if coeffs else None
         wf = _Shifted(zern, tilt, tilt)
         plan = plan_psf(self._pupil_at(self.values()),
-                        wavelength=np.asarray(self.light.wavelengths),
-                        z_image=z, pixel_pitch=_PITCH, shape=key, sampling="pixel",
+                        wavelength=np.asarray(light.wavelengths),
+                        z_image=z, pixel_pitch=_PITCH, shape=tuple(shape), sampling="pixel",
                         accuracy=self.accuracy, wavefront=wf, max_radius=r)
         self._plans[key] = plan
         return plan
@@ -659,14 +670,16 @@ class ImageModel:
         return pup
 
     def image(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None,
-              exposure: float = 1.0):
+              exposure: float = 1.0, light: Light | None = None):
         """The model image (H, W) in data pixels for parameter values ``v`` (a dict of
-        scalars, traceable), for a capture of relative ``exposure``."""
+        scalars, traceable), for a capture of relative ``exposure`` in ``light`` (default:
+        the model's)."""
+        light = self.light if light is None else light
         h, w = shape
         o = self.oversample
         pad = self.pad
         hp, wp = h + 2 * pad, w + 2 * pad
-        plan = self.plan((hp, wp)) if plan is None else plan
+        plan = self.plan((hp, wp), light) if plan is None else plan
         ang = v["pixel_scale"] * ARCSEC  # radians per data pixel
         z = _PITCH / ang * 1.0
         zern = None
@@ -679,8 +692,8 @@ class ImageModel:
         ty = v["y0"] * ang
         wf = _Shifted(zern, tx, ty)
         pupil = self._pupil_at(v)
-        lam = np.asarray(self.light.wavelengths)
-        wts = np.asarray(self.light.weights)
+        lam = np.asarray(light.wavelengths)
+        wts = np.asarray(light.weights)
         img = psf(pupil, wavelength=lam, weights=wts, z_image=z, pixel_pitch=_PITCH,
                   shape=(hp, wp), plan=plan, wavefront=wf)
         # detector: native pixel box (oversampled data) and Gaussian blur, by FFT
@@ -899,14 +912,14 @@ def _residual_fn(model: ImageModel, data, target):
     """values → (residual vector, [model image of each capture]) for ``model`` on each
     of ``data``'s windows (a FitData or a list of them, one ``target`` each)."""
     datas, targets = _as_list(data), _as_list(target)
-    plans = [model.plan((d.image.shape[0] + 2 * model.pad, d.image.shape[1] + 2 * model.pad))
-             for d in datas]
+    plans = [model.plan((d.image.shape[0] + 2 * model.pad, d.image.shape[1] + 2 * model.pad),
+                        d.light) for d in datas]
 
     def res(v):
         rs, ms = [], []
         for i, (d, t, plan) in enumerate(zip(datas, targets, plans)):
             vi = model.capture_values(v, i)
-            m = model.image(vi, d.image.shape, plan, exposure=d.exposure)
+            m = model.image(vi, d.image.shape, plan, exposure=d.exposure, light=d.light)
             rs.append(t(m, vi))
             ms.append(m)
         return (rs[0] if len(rs) == 1 else jnp.concatenate(rs)), ms
