@@ -248,6 +248,18 @@ def test_spike_profile_stage_recovers_the_rotation():
     with pytest.raises(FitInputError, match="spike"):
         fit(model, data, stages=[{"free": ["rotation"], "spikes": {"r_min": 30,
                                                                   "r_max": 31}}])
+    # the windows placed on the spikes of the model at its start (1° off), not the data's
+    start = model.with_values({"rotation": true["rotation"] + 1.0})
+    opts = {"r_min": 6, "r_max": 20, "n_spikes": 6, "half_width": 6, "profiles": False,
+            "directions": "model"}
+    res = fit(start, data, stages=[{"free": ["rotation"], "spikes": opts}], max_steps=30)
+    centre = (20 + true["x0"], 20 + true["y0"])
+    expect = spike_angles(start(data.image.shape) - true["background"], centre, r_min=6,
+                          r_max=20, n_spikes=6)
+    np.testing.assert_allclose(res.stages[0]["directions"], expect, atol=1e-9)
+    assert abs(res.values["rotation"] - true["rotation"]) < max(3 * res.errors["rotation"], 0.05)
+    with pytest.raises(FitInputError, match="directions"):
+        fit(model, data, stages=[{"free": ["rotation"], "spikes": dict(opts, directions="sky")}])
 
 
 def test_noise_from_residuals_recovers_read_noise_and_gain():

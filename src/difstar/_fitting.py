@@ -1035,7 +1035,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
     - ``spikes``: fit the spikes instead of all pixels, around the directions
       :func:`spike_angles` measures in the data, about the star's centre and background
       reached so far (options of :func:`spike_target`: ``r_min``, ``r_max``,
-      ``half_width``, ``n_spikes``; ``profiles`` true: their angular profiles,
+      ``half_width``, ``n_spikes``, ``directions`` "data" or "model"; ``profiles`` true: their angular profiles,
       :class:`SpikeProfiles`; false: the pixels within ± ``half_width`` degrees): the
       stage for the rotation;
     - ``noise_from_residuals`` (options of :func:`noise_from_residuals`, e.g.
@@ -1112,8 +1112,14 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         if st.get("annulus") is not None:
             ds = [d.annulus(*st["annulus"]) for d in ds]
         if st.get("spikes") is not None:
-            targets = [spike_target(d, model.capture_values(values, i), **dict(st["spikes"]))
-                       for i, d in enumerate(ds)]
+            mimgs = [None] * len(ds)
+            if st["spikes"].get("directions") == "model":
+                v = {k: jnp.asarray(x, float) for k, x in values.items()}
+                mimgs = _residual_fn(model.with_values(values), ds,
+                                     [_PixelTarget(d) for d in ds])(v)[1]
+            targets = [spike_target(d, model.capture_values(values, i), model_image=mi,
+                                    **dict(st["spikes"]))
+                       for i, (d, mi) in enumerate(zip(ds, mimgs))]
         else:
             targets = [_PixelTarget(d) for d in ds]
         kind = targets[0].kind
@@ -1249,15 +1255,24 @@ def _scan(model: ImageModel, data, target, values, *, name: str, half_range,
 
 
 def spike_target(data: FitData, values: Mapping[str, float], *, n_spikes=8, r_min=12.0,
-                 r_max=45.0, half_width=4.0, bin_width=0.25, profiles=True):
+                 r_max=45.0, half_width=4.0, bin_width=0.25, profiles=True,
+                 directions="data", model_image=None):
     """The residuals of the spikes about the star at the model's ``values`` (x0, y0 from
     the window's centre pixel; background), around the directions :func:`spike_angles`
-    measures in the data: their angular profiles (:class:`SpikeProfiles`), or with
+    measures in the data (``directions="data"``) or in ``model_image``, the model at the
+    values reached (``"model"``: noise-free, so a faint star's noise cannot put a window
+    where there is no spike): their angular profiles (:class:`SpikeProfiles`), or with
     ``profiles=False`` the pixels themselves within ± ``half_width`` degrees of each
     direction and between ``r_min`` and ``r_max`` pixels."""
     h, w = data.image.shape
     centre = (w // 2 + values["x0"], h // 2 + values["y0"])
-    img = np.where(data.mask, data.image - values["background"], np.nan)
+    if directions == "data":
+        img = np.where(data.mask, data.image - values["background"], np.nan)
+    elif directions == "model" and model_image is not None:
+        img = np.asarray(model_image, float) - values["background"]
+    else:
+        raise FitInputError(f"spikes: directions must be 'data' or 'model' (with the model "
+                            f"image); got {directions!r}.")
     dirs = spike_angles(img, centre, r_min=r_min, r_max=r_max, n_spikes=n_spikes)
     if profiles:
         return SpikeProfiles(data, centre, values["background"], dirs, r_min=r_min,
