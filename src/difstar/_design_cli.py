@@ -59,10 +59,10 @@ def study_setup(*, blades: int = 9, f_number: float = 8.0, quick: bool = False):
     return family, setup, opts
 
 
-def measure(family, setup, params, opts) -> dict:
-    """Every reported measure of one design (concrete floats), with its focused and
-    defocused PSFs and its outline."""
-    import equinox as eqx
+def measures_fn(family, setup, opts):
+    """The pure function ``params → (measures, focused PSF, defocused PSF, outline)`` of
+    the study's setup (``measures``: a dict of scalar arrays); :func:`measure` runs it on
+    one design, :func:`sweep_designs` maps it over many."""
     import jax.numpy as jnp
 
     from difstar._design import (
@@ -76,7 +76,6 @@ def measure(family, setup, params, opts) -> dict:
     rb = setup.blur_radius(family.area)
     rc, hw = opts["core_radius"], opts["half_width"]
 
-    @eqx.filter_jit
     def values(params):
         pu = family.pupil(params)
         img = setup.focused(pu)
@@ -99,7 +98,15 @@ def measure(family, setup, params, opts) -> dict:
             "circumradius_m": pu.circumradius,
         }, img, bok, pu.outline()
 
-    out, img, bok, outline = values(params)
+    return values
+
+
+def measure(family, setup, params, opts) -> dict:
+    """Every reported measure of one design (concrete floats), with its focused and
+    defocused PSFs and its outline."""
+    import equinox as eqx
+
+    out, img, bok, outline = eqx.filter_jit(measures_fn(family, setup, opts))(params)
     return {k: float(v) for k, v in out.items()}, img, bok, outline
 
 
@@ -212,6 +219,212 @@ def table_markdown(rows: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+# ------------------------------------------------------------------------- sweeps
+
+#: the most designs one sweep may hold
+MAX_SWEEP_DESIGNS = 100_000
+_DESIGN_FIELDS = ("name", "curvature", "radial", "angular")
+_SWEEP_FIELDS = ("designs", "grid")
+
+
+def _vertex_values(value, field: str, blades: int):
+    """One number (every vertex alike) or ``blades`` numbers, each in (−0.5, 0.5)."""
+    import numpy as np
+
+    from difstar._validate import InputError, check_number
+
+    if isinstance(value, (list, tuple)):
+        if len(value) != blades:
+            raise InputError(
+                f"{field}: {len(value)} values for a {blades}-blade iris; give one number "
+                f"(every vertex alike) or {blades} (one per vertex), or change --blades.")
+        vals = [check_number(v, f"{field}[{i}]", gt=-0.5, lt=0.5,
+                             fix="a relative deviation; 0 is the regular vertex")
+                for i, v in enumerate(value)]
+        return np.asarray(vals, float)
+    v = check_number(value, field, gt=-0.5, lt=0.5,
+                     fix="a relative deviation, or a list of one per vertex")
+    return np.full(blades, v)
+
+
+def parse_sweep(doc, *, blades: int, source: str = "sweep") -> list[dict]:
+    """The designs of a sweep document (see ``data_schemas/design_sweep.schema.json``):
+    ``{"designs": [{"name", "curvature", "radial", "angular"}, …], "grid": {"curvature":
+    [...]}}`` (either or both; the grid's designs follow the listed ones). Returns
+    ``[{"name", "curvature", "radial" (blades,), "angular" (blades,)}]``; anything else
+    raises :class:`InputError` naming the field and the fix."""
+    import numpy as np
+
+    from difstar._validate import InputError, check_number
+
+    if not isinstance(doc, dict):
+        raise InputError(f'{source}: expected a JSON object like {{"designs": [{{"name": '
+                         f'"c0.3", "curvature": 0.3}}]}} or {{"grid": {{"curvature": '
+                         f'[0, 0.3, 0.6]}}}}.')
+    for k in doc:
+        if k not in _SWEEP_FIELDS and not str(k).startswith("$"):
+            raise InputError(f"{source}: {k}: unknown field; a sweep has "
+                             f"{' and/or '.join(_SWEEP_FIELDS)}.")
+    if "designs" not in doc and "grid" not in doc:
+        raise InputError(f'{source}: no designs; give "designs" (a list of designs) and/or '
+                         f'"grid" (e.g. {{"curvature": [0, 0.3, 0.6]}}).')
+    out = []
+    listed = doc.get("designs", [])
+    if not isinstance(listed, list):
+        raise InputError(f"{source}: designs: expected a list of designs, got "
+                         f"{type(listed).__name__}.")
+    for i, d in enumerate(listed):
+        where = f"{source}: designs[{i}]"
+        if not isinstance(d, dict):
+            raise InputError(f'{where}: expected an object like {{"name": "c0.3", '
+                             f'"curvature": 0.3, "radial": 0.0, "angular": 0.0}}.')
+        for k in d:
+            if k not in _DESIGN_FIELDS:
+                raise InputError(f"{where}.{k}: unknown field; a design has "
+                                 f"{', '.join(_DESIGN_FIELDS)}.")
+        if "curvature" not in d:
+            raise InputError(f"{where}.curvature: missing; give the blade curvature in "
+                             "[0, 1] (0 straight, 1 a circle).")
+        name = d.get("name", f"design {i}")
+        if not isinstance(name, str) or not name.strip():
+            raise InputError(f"{where}.name: {name!r} is not a name; give a non-empty "
+                             "string (or leave it out).")
+        out.append({
+            "name": name,
+            "curvature": check_number(d["curvature"], f"{where}.curvature", ge=0, le=1,
+                                      fix="0 straight blades, 1 a circle"),
+            "radial": _vertex_values(d.get("radial", 0.0), f"{where}.radial", blades),
+            "angular": _vertex_values(d.get("angular", 0.0), f"{where}.angular", blades),
+        })
+    if "grid" in doc:
+        grid = doc["grid"]
+        if not isinstance(grid, dict) or set(grid) != {"curvature"}:
+            raise InputError(f'{source}: grid: expected {{"curvature": [values in [0, 1]]}} '
+                             f"(the grid varies the curvature; list other designs under "
+                             f'"designs").')
+        cs = grid["curvature"]
+        if not isinstance(cs, list) or not cs:
+            raise InputError(f"{source}: grid.curvature: expected a non-empty list of "
+                             "curvatures in [0, 1], e.g. [0, 0.3, 0.6].")
+        for j, c in enumerate(cs):
+            c = check_number(c, f"{source}: grid.curvature[{j}]", ge=0, le=1,
+                             fix="0 straight blades, 1 a circle")
+            out.append({"name": f"curvature={c:.4g}", "curvature": c,
+                        "radial": np.zeros(blades), "angular": np.zeros(blades)})
+    if not out:
+        raise InputError(f"{source}: the sweep holds no design; list at least one.")
+    if len(out) > MAX_SWEEP_DESIGNS:
+        raise InputError(f"{source}: {len(out)} designs; a sweep holds at most "
+                         f"{MAX_SWEEP_DESIGNS}; split it into several sweeps.")
+    seen = {}
+    for i, d in enumerate(out):
+        if d["name"] in seen:
+            raise InputError(f"{source}: designs[{i}].name: {d['name']!r} is also design "
+                             f"{seen[d['name']]}'s name; give every design its own name.")
+        seen[d["name"]] = i
+    return out
+
+
+def curvature_grid(lo, hi, n, *, blades: int, flag: str = "--sweep-curvature") -> list[dict]:
+    """``n`` designs with straight-to-curved blades, curvature evenly from ``lo`` to
+    ``hi`` (the flag's three values), as :func:`parse_sweep` returns them."""
+    import numpy as np
+
+    from difstar._validate import InputError, check_number
+
+    lo = check_number(lo, f"{flag} LO", ge=0, le=1, fix="0 straight blades, 1 a circle")
+    hi = check_number(hi, f"{flag} HI", ge=0, le=1, fix="0 straight blades, 1 a circle")
+    n = check_number(n, f"{flag} N", integer=True, ge=1, le=MAX_SWEEP_DESIGNS,
+                     fix="the number of designs")
+    if hi < lo:
+        raise InputError(f"{flag}: HI {hi:g} < LO {lo:g}; give LO HI N with LO <= HI, "
+                         "e.g. 0 0.6 7.")
+    return parse_sweep({"grid": {"curvature": [float(c) for c in np.linspace(lo, hi, n)]}},
+                       blades=blades, source=flag)
+
+
+def _check_convex(family, designs, source: str) -> None:
+    """Refuse a design whose iris is not convex (exact margins, computed before the
+    PSFs)."""
+    import jax
+    import numpy as np
+
+    from difstar._validate import InputError
+
+    if not designs:
+        return
+    margins = np.asarray(jax.jit(jax.vmap(
+        lambda b: family.pupil(_params(b)).convexity_margin()))(_stack(designs)))
+    for i, m in enumerate(margins):
+        if not (m >= -1e-9):  # a disc (curvature 1) has margin 0 to rounding
+            d = designs[i]
+            raise InputError(
+                f"{source}: design {i} ({d['name']!r}): the iris is not convex (turning "
+                f"{m:.3g} rad at a vertex); reduce its curvature or its radial/angular "
+                "vertex deviations.")
+
+
+def _stack(designs) -> dict:
+    """The designs as arrays with a leading axis: curvature (B,), radial and angular (B,
+    blades) (:func:`_params` makes one item's :class:`difstar._design.IrisParams`)."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    dt = jnp.result_type(float)
+    return {"curvature": jnp.asarray(np.array([d["curvature"] for d in designs]), dt),
+            "radial": jnp.asarray(np.stack([d["radial"] for d in designs]), dt),
+            "angular": jnp.asarray(np.stack([d["angular"] for d in designs]), dt)}
+
+
+def _params(item):
+    from difstar._design import IrisParams
+
+    return IrisParams(item["curvature"], item["radial"], item["angular"])
+
+
+def sweep_designs(designs, *, blades: int = 9, f_number: float = 8.0, quick: bool = False,
+                  devices=None, chunk=None, progress=None, plan_out=None,
+                  source: str = "sweep") -> dict:
+    """Every measure of many designs at once, the designs sharded over ``devices``
+    (:func:`difstar.map_batch` over the stacked :class:`IrisParams`; ``chunk`` designs
+    at a time at most, default memory-sized; ``progress(done, total, seconds)`` after
+    each chunk). ``designs``: as :func:`parse_sweep` returns them (radial/angular
+    (blades,) arrays). Returns ``{"config", "rows"}``: one row per design, in order, with
+    its parameters and the same measures as :func:`measure` (equal to them to rounding)."""
+    import numpy as np
+
+    from difstar._batch import map_batch
+
+    family, setup, opts = study_setup(blades=blades, f_number=f_number, quick=quick)
+    for i, d in enumerate(designs):
+        for k in ("radial", "angular"):
+            if np.shape(d[k]) != (family.n,):
+                raise ValueError(f"{source}: design {i} ({d['name']!r}).{k}: shape "
+                                 f"{np.shape(d[k])}, expected ({family.n},) for "
+                                 f"{family.n} blades.")
+    _check_convex(family, designs, source)
+    values = measures_fn(family, setup, opts)
+    out = map_batch(lambda b: values(_params(b))[0], _stack(designs), devices=devices,
+                    chunk=chunk, progress=progress, plan_out=plan_out)
+    rows = []
+    for i, d in enumerate(designs):
+        row = {"name": d["name"], "radial": [float(v) for v in d["radial"]],
+               "angular": [float(v) for v in d["angular"]]}
+        row.update({k: float(v[i]) for k, v in out.items()})
+        rows.append(row)
+    rb = setup.blur_radius(family.area)
+    return {
+        "config": {
+            "blades": family.n, "f_number": f_number, "open_area_m2": family.area,
+            "focal_length_m": setup.z_focus, "wavelength_m": setup.wavelength,
+            "pixel_pitch_m": setup.pixel_pitch, "focused_shape": list(setup.shape),
+            "defocused_shape": list(setup.defocus_shape), "defocus_m": setup.defocus,
+            "blur_diameter_px": 2 * rb, **opts, "quick": quick,
+        },
+        "rows": rows,
+    }
+
+
 def plot_study(result: dict, path_prefix: Path) -> list[str]:
     """psfs.png (focused, log scale), bokeh.png (defocused, linear), pupils.png,
     history.png. Returns the file names."""
@@ -272,9 +485,82 @@ def plot_study(result: dict, path_prefix: Path) -> list[str]:
     return files
 
 
-def _cmd_design(a) -> int:
+def _cmd_sweep(a) -> int:
+    """``difstar design --sweep FILE`` / ``--sweep-curvature LO HI N``: many designs'
+    measures at once, sharded over ``--devices``; writes sweep.json and sweep.md."""
+    import os
+
+    from difstar._batch import ENV_DEVICES, check_chunk, device_count, init_distributed
+    from difstar._validate import check_number, loads_strict
     from difstar.io._output import check_output_free, output_dir, write_json
 
+    blades = check_number(a.blades, "--blades", integer=True, ge=3)
+    designs = []
+    inputs = []
+    if a.sweep:
+        path = Path(a.sweep)
+        try:
+            text = path.read_text()
+        except OSError as exc:
+            raise OSError(f"--sweep {path}: cannot read it ({exc.strerror or exc}); give "
+                          "an existing sweep file (data_schemas/design_sweep.schema.json)."
+                          ) from None
+        designs += parse_sweep(loads_strict(text, source=str(path)), blades=blades,
+                               source=str(path))
+        inputs.append(path)
+    if a.sweep_curvature:
+        designs += curvature_grid(*a.sweep_curvature, blades=blades)
+    names = [d["name"] for d in designs]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise ValueError(f"--sweep and --sweep-curvature: two designs are named {dup!r}; "
+                         "give every design in the sweep file its own name.")
+    chunk = None if a.chunk is None else check_chunk(a.chunk, "--chunk")
+    if a.devices is not None or os.environ.get(ENV_DEVICES, "").strip():
+        init_distributed()
+    n_dev = device_count(a.devices)
+    check_output_free(Path(a.out), overwrite=a.overwrite, inputs=inputs)
+    t0 = time.perf_counter()
+    plans = []
+    _log(f"difstar design: {len(designs)} designs on {n_dev} device(s) ...")
+    with output_dir(Path(a.out), overwrite=a.overwrite, inputs=inputs,
+                    command="design") as tmp:
+        result = sweep_designs(
+            designs, blades=blades, f_number=a.f_number, quick=a.quick, devices=n_dev,
+            chunk=chunk, plan_out=plans, source=str(a.sweep or "--sweep-curvature"),
+            progress=lambda d, n, sec: _log(f"difstar design: {d}/{n} designs ({sec:.1f} s)"))
+        wall = time.perf_counter() - t0
+        bad = [r["name"] for r in result["rows"]
+               if not all(math.isfinite(v) for k, v in r.items()
+                          if isinstance(v, float))]
+        if bad:
+            raise RuntimeError(f"sweep designs {bad} hold NaN or infinity; nothing was "
+                               "written")
+        md = table_markdown({r["name"]: r for r in result["rows"]})
+        (tmp / "sweep.md").write_text(md)
+        p = plans[0]
+        doc = dict(result, devices=n_dev, timing_s={"total": wall},
+                   plan={"designs_per_chunk": p.chunk, "per_device": p.per_device,
+                         "chunks": p.chunks, "item_bytes": p.item_bytes,
+                         "free_bytes": p.free_bytes})
+        write_json(tmp / "sweep.json", doc)
+    sys.stdout.write(md)
+    _log(f"difstar design: {len(designs)} designs in {wall:.1f} s on {n_dev} device(s); "
+         f"wrote {a.out}/ (sweep.json, sweep.md)")
+    return 0
+
+
+def _cmd_design(a) -> int:
+    from difstar.io._output import check_output_free, output_dir, write_json
+    from difstar._validate import InputError
+
+    if a.sweep or a.sweep_curvature:
+        return _cmd_sweep(a)
+    for flag, v in (("--devices", a.devices), ("--chunk", a.chunk)):
+        if v is not None:
+            raise InputError(f"{flag}: only a sweep (--sweep FILE or --sweep-curvature LO "
+                             f"HI N) evaluates several designs to share out; add one, or "
+                             f"drop {flag} for the study.")
     check_output_free(Path(a.out), overwrite=a.overwrite)
     t0 = time.perf_counter()
     with output_dir(Path(a.out), overwrite=a.overwrite, command="design") as tmp:
@@ -328,4 +614,17 @@ def register(subparsers, name: str) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace --out if it is a folder difstar made (never one holding "
                    "other files)")
+    p.add_argument("--sweep", metavar="FILE",
+                   help="instead of the study, measure every design of FILE (JSON, "
+                   "data_schemas/design_sweep.schema.json) at once; writes sweep.json and "
+                   "sweep.md (--blades, --f-number and --quick apply; nothing is optimised)")
+    p.add_argument("--sweep-curvature", nargs=3, metavar=("LO", "HI", "N"),
+                   help="a sweep of N designs, curvature evenly from LO to HI (in [0, 1]), "
+                   "straight-cut vertices; with --sweep, added after its designs")
+    p.add_argument("--devices", metavar="N",
+                   help="with a sweep: shard the designs over N devices (default: "
+                   "$DIFSTAR_DEVICES, else every device); see docs/sharding.md")
+    p.add_argument("--chunk", metavar="N",
+                   help="with a sweep: at most N designs at a time (default: as many as "
+                   "fit in the devices' memory)")
     p.set_defaults(func=_cmd_design)
