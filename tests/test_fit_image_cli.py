@@ -12,7 +12,7 @@ from pathlib import Path
 import jsonschema
 import numpy as np
 import pytest
-from test_fitting import LAM, P, TRUE, _numpy_star
+from test_fitting import LAM, TRUE, P, _numpy_star
 
 from difstar._fit_image_cli import main
 

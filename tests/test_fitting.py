@@ -315,21 +315,27 @@ def test_scan_puts_the_solver_in_the_right_basin(synthetic):
     assert res.stages[0]["scan"]["name"] == "rotation"
 
 
+def _noisy_dng(path, clean, pattern, black, white, gain, read, *, seed):
+    """``clean`` (DN above black) with Poisson noise in electrons and read noise in DN,
+    rounded, clipped at ``white`` and written as a Bayer DNG: (raw, path)."""
+    from difstar.io import write_dng
+
+    rng = np.random.default_rng(seed)
+    dn = black + rng.poisson(clean * gain) / gain + rng.normal(0, read, clean.shape)
+    raw = np.clip(np.round(dn), 0, white).astype(np.uint16)
+    return raw, write_dng(path, raw, pattern=pattern, black_level=black, white_level=white)
+
+
 @pytest.mark.parametrize("pattern", ["RGGB", "GBRG"])
 def test_fit_from_a_raw_mosaic_of_the_independent_star(tmp_path, pattern):
     """The independent star written as a Bayer DNG (Poisson–Gaussian noise, a saturated
     core), read back by LibRaw, fitted on its green photosites: the centre and flux
     come back, and saturated pixels are left out."""
-    from difstar.io import write_dng
-
     true = dict(TRUE, flux=3.0e5, background=0.0)
     clean = _numpy_star((25, 25), **true)[:24, :24]  # DN above black; centre (12, 12)
     black, white, gain, read = 512, 16383, 2.0, 3.0
-    rng = np.random.default_rng(5)
-    dn = black + rng.poisson(clean * gain) / gain + rng.normal(0, read, clean.shape)
-    raw = np.clip(np.round(dn), 0, white).astype(np.uint16)
-    path = write_dng(tmp_path / "star.dng", raw, pattern=pattern, black_level=black,
-                     white_level=white)
+    raw, path = _noisy_dng(tmp_path / "star.dng", clean, pattern, black, white, gain, read,
+                           seed=5)
     data = FitData.from_raw(path, channel="G", gain_e_per_dn=gain, read_noise_dn=read,
                             pixel_scale=P)
     tile = np.array(list(pattern)).reshape(2, 2)
@@ -352,8 +358,6 @@ def test_three_colours_of_one_raw_in_their_own_bands(tmp_path):
     """One Bayer DNG whose R, G and B photosites see the independent star at 4.4, 3.6
     and 3.0 µm (each colour its own flux): its three colours fitted together, each in
     its own light, share the centre and rotation and keep their own flux."""
-    from difstar.io import write_dng
-
     lams = {"R": 4.4e-6, "G": 3.6e-6, "B": 3.0e-6}
     fluxes = {"R": 2.0e5, "G": 3.0e5, "B": 1.5e5}
     pattern = "RGGB"
@@ -364,11 +368,8 @@ def test_three_colours_of_one_raw_in_their_own_bands(tmp_path):
                            lam=lams[c])[:24, :24]
         clean = np.where(colour == c, star, clean)
     black, white, gain, read = 512, 65535, 2.0, 3.0
-    rng = np.random.default_rng(6)
-    dn = black + rng.poisson(clean * gain) / gain + rng.normal(0, read, clean.shape)
-    raw = np.clip(np.round(dn), 0, white).astype(np.uint16)
-    path = write_dng(tmp_path / "rgb.dng", raw, pattern=pattern, black_level=black,
-                     white_level=white)
+    _, path = _noisy_dng(tmp_path / "rgb.dng", clean, pattern, black, white, gain, read,
+                         seed=6)
     datas = [FitData.from_raw(path, channel=c, gain_e_per_dn=gain, read_noise_dn=read,
                               pixel_scale=P, light=Light.monochromatic(lams[c]))
              for c in "RGB"]

@@ -1035,9 +1035,9 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
     - ``spikes``: fit the spikes instead of all pixels, around the directions
       :func:`spike_angles` measures in the data, about the star's centre and background
       reached so far (options of :func:`spike_target`: ``r_min``, ``r_max``,
-      ``half_width``, ``n_spikes``, ``directions`` "data" or "model"; ``profiles`` true: their angular profiles,
-      :class:`SpikeProfiles`; false: the pixels within ± ``half_width`` degrees): the
-      stage for the rotation;
+      ``half_width``, ``n_spikes``, ``directions`` "data" or "model"; ``profiles``
+      true: their angular profiles, :class:`SpikeProfiles`; false: the pixels within
+      ± ``half_width`` degrees): the stage for the rotation;
     - ``noise_from_residuals`` (options of :func:`noise_from_residuals`, e.g.
       ``{"floor": 0.03}``): before the stage, σ from read noise and gain estimated from
       the residual at the values reached, for this and later stages and the errors;
