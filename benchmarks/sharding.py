@@ -1,8 +1,8 @@
 """Sharding over devices (issue 17): scaling from 1 to 2 host CPU devices.
 
 Each measurement runs in a fresh child Python with ``XLA_FLAGS`` giving it N host CPU
-devices (one thread each: ``--xla_cpu_multi_thread_eigen=false
-intra_op_parallelism_threads=1``, so that N devices use N cores and nothing else), and
+devices (their Eigen operations single-threaded: ``--xla_cpu_multi_thread_eigen=false``,
+so that N devices use about N cores), and
 times, after a first run that compiles:
 
 - spectral render: ``difstar._batch.simulate_spectral`` of the paper's focused scene in
@@ -10,11 +10,16 @@ times, after a first run that compiles:
   paper's 600/530/450 nm, equal weights), ``--crop`` pixels;
 - fits: ``difstar._batch.solve_many`` of ``--fits`` small fits (the tiny synthetic model
   of ``tests/test_fit.py``: 64² crop, 2 captures, 7 free values) for ``--steps`` solver
-  steps each.
+  steps each (on CPU a device's fits step one after another, see
+  ``difstar._batch.lapack_in_turn``);
+- design sweep: ``difstar._design_cli.sweep_designs`` of ``--designs`` 9-blade irises at
+  f/8 (``difstar design --quick``'s setup: 64² focused and 64² defocused PSFs per design),
+  curvature evenly over [0, 0.9].
 
 Efficiency = t1 / (N · tN); cost per item = tN / items. Prints a Markdown table.
 
     python benchmarks/sharding.py [--devices 1 2] [--crop 64] [--wavelengths 8] [--fits 4]
+        [--designs 16]
 """
 
 from __future__ import annotations
@@ -44,6 +49,19 @@ cam = difstar.Camera(camera.lens, difstar.Sensor(
     spectral_weights=np.ones_like(wl), phi0=s.phi0, response=s.response,
     white_balance=s.white_balance))
 grid = difstar.choose_grid(cam, scene, crop=(cfg["crop"], cfg["crop"]), raw_only=True)
+if "design" in cfg["only"]:
+  from difstar._design_cli import curvature_grid, sweep_designs
+  designs = curvature_grid(0.0, 0.9, cfg["designs"], blades=9)
+  sweep_designs(designs, quick=True, devices=n)  # compile
+  best = float("inf")
+  for _ in range(cfg["repeats"]):
+    t0 = time.perf_counter()
+    sweep_designs(designs, quick=True, devices=n)
+    best = min(best, time.perf_counter() - t0)
+  out["design_s"] = best
+  out["design_items"] = len(designs)
+  print("RESULT " + json.dumps(out))
+  sys.exit(0)
 if "spectral" in cfg["only"]:
   B.simulate_spectral(cam, scene, grid, devices=n)  # compile
   best = float("inf")
@@ -77,8 +95,7 @@ out["fit_items"] = m
 print("RESULT " + json.dumps(out))
 '''
 
-FLAGS = ("--xla_force_host_platform_device_count={n} --xla_cpu_multi_thread_eigen=false "
-         "intra_op_parallelism_threads=1")
+FLAGS = "--xla_force_host_platform_device_count={n} --xla_cpu_multi_thread_eigen=false"
 
 
 def measure(n: int, cfg: dict, only: str, timeout: float) -> dict | None:
@@ -104,21 +121,24 @@ def main(argv=None) -> int:
     ap.add_argument("--wavelengths", type=int, default=8, help="per channel")
     ap.add_argument("--fits", type=int, default=4)
     ap.add_argument("--steps", type=int, default=6)
+    ap.add_argument("--designs", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--timeout", type=float, default=300, help="seconds per measurement")
     a = ap.parse_args(argv)
     cfg = {"crop": a.crop, "wavelengths": a.wavelengths, "fits": a.fits, "steps": a.steps,
-           "repeats": a.repeats}
+           "repeats": a.repeats, "designs": a.designs}
     rows = {key: {n: measure(n, cfg, key, a.timeout) for n in a.devices}
-            for key in ("spectral", "fit")}
+            for key in ("spectral", "fit", "design")}
     n0 = a.devices[0]
-    print(f"# Sharding (issue 17): {os.cpu_count()} CPUs, host CPU devices, one thread each; "
+    print(f"# Sharding (issue 17): {os.cpu_count()} CPUs, host CPU devices, single-threaded Eigen; "
           f"float64; best of {a.repeats} after compiling")
     print("| workload | devices | items | wall (s) | per item (s) | efficiency t1/(N·tN) |")
     print("|---|---|---|---|---|---|")
     for key, label in (("spectral", f"spectral render ({a.crop}² crop, "
                         f"{a.wavelengths} wavelengths per channel; item = one per channel)"),
-                       ("fit", f"small fits ({a.steps} LM steps each)")):
+                       ("fit", f"small fits ({a.steps} LM steps each)"),
+                       ("design", "design sweep (9-blade irises, 64² focused + 64² "
+                        "defocused PSF each)")):
         r0 = rows[key][n0]
         for n, r in rows[key].items():
             if r is None or r0 is None:
