@@ -105,3 +105,21 @@ def test_bad_manifests_exit_2_with_the_field_named(tmp_path, capsys):
     assert main([str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "source" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_rough_starts_about_the_result(bracket):
+    """--robustness 1 --rough-about result: one refit from every free parameter moved
+    within ± 20 % of the main fit's value lands back on it."""
+    out = bracket.parent / "rough"
+    assert main([str(bracket), "--out", str(out), "--quiet", "--robustness", "1",
+                 "--rough-about", "result", "--seed", "3"]) == 0
+    study = json.loads((out / "robustness.json").read_text())
+    main_fit = json.loads((out / "result.json").read_text())["values"]
+    (row,) = study["starts"]
+    assert study["about"] == "result"
+    for k, v in row["start"].items():  # per-capture ones about the first capture's
+        ref = main_fit.get(f"{k}@0", main_fit[k])
+        assert abs(v - ref) <= 0.2 * abs(ref) + 1e-12, k
+    assert row["max_deviation"] < 1.0
+    assert "value in the main fit" in (out / "robustness.md").read_text()

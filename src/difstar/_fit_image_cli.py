@@ -63,11 +63,13 @@ def _figure(res, path, title):
 
 def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         max_steps: int | None = None, overwrite: bool = False, robustness: int = 0,
-        seed: int = 0, fainter: tuple[float, ...] = ()) -> dict:
+        seed: int = 0, fainter: tuple[float, ...] = (), rough_about: str = "start") -> dict:
     """Fit the manifest's model to its data; write result.json, fit.png, model.npy into
     ``out``, a folder difstar creates (whole or not at all; see ``io._output``). With
     ``robustness`` = N, also refit from N rough starts (every free parameter ± 20 %,
-    :func:`difstar._fitting.perturbed_starts`) and write robustness.json / .md; with
+    :func:`difstar._fitting.perturbed_starts`; about the manifest's starts, or with
+    ``rough_about="result"`` about the main fit's values) and write robustness.json / .md;
+    with
     ``fainter`` = (f1, …), also fit copies of the star f times fainter
     (:func:`difstar._fitting.fainter_copy`, stand-ins for other stars) and write
     fainter.json / .md."""
@@ -87,7 +89,7 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         summary = _run(manifest, tmp, verbose=verbose, max_steps=max_steps, final=out)
         if robustness:
             _robustness(manifest, tmp, summary, robustness, seed, max_steps=max_steps,
-                        verbose=verbose)
+                        verbose=verbose, about=rough_about)
         if fainter:
             _fainter(manifest, tmp, summary, fainter, seed, max_steps=max_steps,
                      verbose=verbose)
@@ -144,14 +146,19 @@ def _fainter(manifest, out, summary, factors, seed, *, max_steps, verbose) -> di
     return study
 
 
-def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose) -> dict:
-    """Refit from ``n`` perturbed starts; compare each result with the main fit."""
+def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose,
+                about="start") -> dict:
+    """Refit from ``n`` perturbed starts (about the manifest's starts or the main fit's
+    ``about="result"``); compare each result with the main fit."""
     from ._fitting import PERTURB, fit, load_manifest, perturbed_starts
 
     model, data, opts = load_manifest(manifest)
     ref, err = summary["values"], summary["errors"]
+    # about the result: a per-capture parameter starts from its first capture's value
+    centre = model if about == "start" else model.with_values(
+        {k: ref.get(f"{k}@0", ref.get(k)) for k in model.params if k in ref or f"{k}@0" in ref})
     rows = []
-    for i, start in enumerate(perturbed_starts(model, n, rel=PERTURB, seed=seed)):
+    for i, start in enumerate(perturbed_starts(centre, n, rel=PERTURB, seed=seed)):
         t = time.perf_counter()
         res = fit(model.with_values(start), data, stages=opts["stages"],
                   max_steps=max_steps or opts["max_steps"], verbose=False,
@@ -168,12 +175,13 @@ def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose) -> dict:
                   f"{100 * res.residual_rms_peak:.3f} %, max |Δ|/σ "
                   f"{rows[-1]['max_deviation']:.2f} ({rows[-1]['seconds']:.0f} s)", flush=True)
     rot = np.array([r["values"]["rotation"] for r in rows])
-    study = {"n": n, "seed": seed, "perturb": PERTURB, "starts": rows,
+    study = {"n": n, "seed": seed, "perturb": PERTURB, "about": about, "starts": rows,
              "rotation_spread_deg": float(rot.max() - rot.min()),
              "max_deviation_in_standard_errors": max(r["max_deviation"] for r in rows)}
     (Path(out) / "robustness.json").write_text(json.dumps(study, indent=2, default=float) + "\n")
+    what = "manifest start" if about == "start" else "value in the main fit"
     lines = [f"Refits from {n} starts, each free parameter within ± {100 * PERTURB:g} % of its "
-             f"manifest start (seed {seed}); deviations from the main fit in its standard "
+             f"{what} (seed {seed}); deviations from the main fit in its standard "
              "errors.", "",
              "| start | rotation (°) | residual RMS / peak | max \\|Δ\\|/σ (parameter) | status "
              "| s |", "|---|---|---|---|---|---|"]
@@ -263,6 +271,10 @@ def _add_arguments(ap) -> None:
     ap.add_argument("--robustness", type=_nonnegative_int, default=0, metavar="N",
                     help="also refit from N rough starts (every free parameter within "
                     "± 20 %% of its start) and write robustness.json/.md (default 0)")
+    ap.add_argument("--rough-about", choices=("start", "result"), default="start",
+                    help="the rough starts are ± 20 %% about the manifest's starts "
+                    "(default; a start at 0 moves by 20 %% of half its bounds) or about the "
+                    "main fit's result (the issue's 'started 20 %% off' the answer)")
     ap.add_argument("--seed", type=_nonnegative_int, default=0,
                     help="seed of the rough starts and of the fainter copies' noise "
                     "(default 0)")
@@ -310,7 +322,7 @@ def _cmd(a) -> int:
     try:
         run(a.manifest, a.out, verbose=not a.quiet, max_steps=a.max_steps,
             overwrite=a.overwrite, robustness=a.robustness, seed=a.seed,
-            fainter=a.fainter)
+            fainter=a.fainter, rough_about=a.rough_about)
     except FitInputError as e:
         raise ValueError(f"difstar fit-image: {e}") from None
     return 0
