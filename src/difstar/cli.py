@@ -99,7 +99,8 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
         else:
             if devices is not None:
                 _log("difstar: --devices: one wavelength per channel (not spectral); "
-                     "nothing to shard, running on one device")
+                     "nothing to shard, running on one device (a spectral scene gives "
+                     "camera/sensor/wavelengths as 3 lists of K)")
             run = eqx.filter_jit(difstar.simulate)
             t0 = time.perf_counter()
             _log("difstar: compiling the chain ...")
@@ -246,7 +247,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "marker lists every file in it); never a folder with other files, never "
                    "an input")
     p.add_argument("--devices", metavar="N",
-                   help="spectral scenes: shard the wavelengths over N devices (default: "
+                   help="spectral scenes (camera/sensor/wavelengths as 3 lists of K, "
+                   "with spectral_weights): shard the wavelengths over N devices (default: "
                    "$DIFSTAR_DEVICES, else one device); see docs/sharding.md")
     p.set_defaults(func=_cmd_predict)
 

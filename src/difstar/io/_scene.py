@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 from pathlib import Path
 from typing import Any
 
@@ -191,10 +192,107 @@ def _radius(d, key, focal_length, m_p, where):
     raise SceneError(f"{where}: give {key} (metres) or f_number.")
 
 
+#: the most wavelengths per channel a scene file may give (each is one PSF per channel)
+MAX_WAVELENGTHS = 1024
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
+
+
+def _check_spectrum(doc, *, source: str) -> None:
+    """The sensor's ``wavelengths`` and ``spectral_weights``, checked before the schema
+    (whose messages for a list that may hold numbers or lists name the wrong form) and
+    beyond it (equal lengths, weights with a positive sum): 3 numbers (trichromatic), or
+    3 lists of K numbers with optional ``spectral_weights`` of the same shape (spectral).
+    Raises :class:`SceneError` naming the field and the fix."""
+    try:
+        check_finite_doc(doc, source=source)
+    except InputError as exc:
+        raise SceneError(str(exc)) from None
+    sd = doc.get("camera") if isinstance(doc, dict) else None
+    sd = sd.get("sensor") if isinstance(sd, dict) else None
+    if not isinstance(sd, dict):
+        return  # the schema names what is missing
+    at = "camera/sensor"
+    forms = ("give 3 numbers (one wavelength per channel R, G, B, in metres, e.g. "
+             "[600e-9, 530e-9, 450e-9]) or, for a spectral sensor, 3 lists of K numbers "
+             "(the same K for every channel)")
+
+    def bad(field, why):
+        raise SceneError(f"{source}: field {at}/{field}: {why}")
+
+    def wavelength(x, field):
+        if not _is_number(x):
+            bad(field, f"{_short(x)} is not a number; give a wavelength in metres, e.g. 530e-9.")
+        if not 0 < x <= 1e-3:
+            bad(field, f"{_short(x)} is not a wavelength in metres: it must be > 0 and "
+                       "<= 0.001 (1 mm); give metres, e.g. 530e-9 (not nanometres).")
+
+    def rows(v, field, what):
+        """3 lists of one length K; returns K."""
+        ks = []
+        for c, row in enumerate(v):
+            if not isinstance(row, list):
+                bad(f"{field}/{c}", f"{_short(row)} is not a list; give 3 lists of K {what}.")
+            if not 1 <= len(row) <= MAX_WAVELENGTHS:
+                bad(f"{field}/{c}", f"has {len(row)} {what}; give 1 to {MAX_WAVELENGTHS}.")
+            ks.append(len(row))
+        if len(set(ks)) != 1:
+            bad(field, f"the channels' lists have {', '.join(map(str, ks))} {what} (ragged); "
+                       "give every channel the same number K" + (
+                           " (pad a shorter channel with any wavelength of spectral weight 0)."
+                           if what == "wavelengths" else ", one weight per wavelength."))
+        return ks[0]
+
+    wl = sd.get("wavelengths")
+    k = None
+    if wl is not None:
+        if not isinstance(wl, list) or len(wl) != 3:
+            n = f"has {len(wl)} items" if isinstance(wl, list) else f"{_short(wl)} is not a list"
+            bad("wavelengths", f"{n}; {forms}.")
+        lists = [isinstance(x, list) for x in wl]
+        if any(lists) and not all(lists):
+            bad("wavelengths", f"mixes numbers and lists; {forms}.")
+        if all(lists):
+            k = rows(wl, "wavelengths", "wavelengths")
+            for c, row in enumerate(wl):
+                for j, x in enumerate(row):
+                    wavelength(x, f"wavelengths/{c}/{j}")
+        else:
+            for c, x in enumerate(wl):
+                wavelength(x, f"wavelengths/{c}")
+    wts = sd.get("spectral_weights")
+    if wts is None:
+        return
+    if k is None:
+        bad("spectral_weights", f"given, but {at}/wavelengths "
+            + ("is not given" if wl is None else "has one wavelength per channel")
+            + " (trichromatic); give wavelengths as 3 lists of K numbers (a spectral "
+            "sensor), or drop spectral_weights.")
+    if not isinstance(wts, list) or len(wts) != 3:
+        n = f"has {len(wts)} items" if isinstance(wts, list) else f"{_short(wts)} is not a list"
+        bad("spectral_weights", f"{n}; give 3 lists of {k} numbers >= 0, one weight per "
+            f"wavelength of {at}/wavelengths.")
+    kw = rows(wts, "spectral_weights", "weights")
+    if kw != k:
+        bad("spectral_weights", f"{kw} weights per channel for {k} wavelengths; give 3 "
+            f"lists of {k}, one weight per wavelength of {at}/wavelengths.")
+    for c, row in enumerate(wts):
+        for j, x in enumerate(row):
+            if not _is_number(x) or x < 0:
+                bad(f"spectral_weights/{c}/{j}", f"{_short(x)} is not a number >= 0; give a "
+                    "non-negative weight (only the ratios within a channel matter).")
+        if not sum(row) > 0:
+            bad(f"spectral_weights/{c}", f"channel {'RGB'[c]}'s weights are all 0; give "
+                "at least one weight > 0 (they are normalised per channel).")
+
+
 def scene_from_dict(doc: dict, *, source: str = "<scene>"):
     """(camera, scene, grid options) from a validated scene document."""
     import difstar
 
+    _check_spectrum(doc, source=source)
     validate(doc, "scene", source=source)
     cam = doc["camera"]
     ld = cam["lens"]
@@ -218,6 +316,7 @@ def scene_from_dict(doc: dict, *, source: str = "<scene>"):
             pixel_pitch=float(sd["pixel_pitch"]),
             pattern=sd.get("pattern", "RGGB"),
             wavelengths=sd.get("wavelengths", (600e-9, 530e-9, 450e-9)),
+            spectral_weights=sd.get("spectral_weights"),
             phi0=sd.get("phi0", (0.1, 0.1, 0.1)),
             response=difstar.Response(resp.get("toe", (0.0, 0.0, 0.0)), resp.get("knee", (60.0,) * 3)),
             white_balance=sd.get("white_balance", (2.0, 1.0, 2.0)),
@@ -290,6 +389,8 @@ def scene_to_dict(camera, scene, grid_options: dict | None = None, *, name: str 
                 "pixel_pitch": sen.pixel_pitch,
                 "pattern": sen.pattern,
                 "wavelengths": tolist(sen.wavelengths),
+                **({} if sen.spectral_weights is None
+                   else {"spectral_weights": tolist(sen.spectral_weights)}),
                 "phi0": tolist(sen.phi0),
                 "response": {"toe": tolist(sen.response.toe), "knee": tolist(sen.response.knee)},
                 "white_balance": tolist(sen.white_balance),

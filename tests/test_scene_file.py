@@ -1,0 +1,232 @@
+"""Spectral scene files (issue 17): a sensor's ``wavelengths`` as 3 lists of K numbers
+with ``spectral_weights``; ``difstar predict`` of such a file against ``difstar.simulate``
+of the same camera built in Python, with and without ``--devices 2`` (two host CPU
+devices, in a child Python), and bad spectral inputs refused with one line."""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+import difstar
+from difstar import cli
+from difstar.io import _output
+from difstar.io._scene import SceneError, scene_from_dict, scene_to_dict
+
+#: K = 3 wavelengths per channel, each channel its own; the blue channel's last weight 0
+WAVELENGTHS = [[580e-9, 610e-9, 640e-9], [500e-9, 530e-9, 560e-9], [430e-9, 450e-9, 470e-9]]
+WEIGHTS = [[1.0, 2.0, 1.0], [1.0, 3.0, 1.0], [0.5, 1.0, 0.0]]
+
+
+def spectral_doc(crop=(32, 32)) -> dict:
+    """The paper's defocused scene, cut small, with a spectral sensor."""
+    doc = cli.example_document("paper-defocused", crop=crop)
+    doc["scene"]["sources"][0]["radius"] = 0.3e-3
+    doc["grid"]["padding"] = 0.5
+    doc["camera"]["sensor"]["wavelengths"] = copy.deepcopy(WAVELENGTHS)
+    doc["camera"]["sensor"]["spectral_weights"] = copy.deepcopy(WEIGHTS)
+    return doc
+
+
+def python_camera():
+    """The same camera and scene as :func:`spectral_doc`, built in Python."""
+    camera, scene = difstar.paper_camera("defocused")
+    s = camera.sensor
+    cam = difstar.Camera(camera.lens, difstar.Sensor(
+        pixel_pitch=s.pixel_pitch, pattern=s.pattern, wavelengths=np.array(WAVELENGTHS),
+        spectral_weights=np.array(WEIGHTS), phi0=s.phi0, response=s.response,
+        white_balance=s.white_balance, colour_matrix=s.colour_matrix))
+    src = scene.sources[0]
+    scene = difstar.Scene(
+        object_distance=scene.object_distance, exposure_time=scene.exposure_time,
+        background=scene.background,
+        sources=[difstar.DiscSource(0.3e-3, src.position, src.radiance)])
+    return cam, scene
+
+
+def test_spectral_sensor_loads_and_roundtrips():
+    camera, _, _ = scene_from_dict(spectral_doc())
+    sen = camera.sensor
+    assert sen.wavelengths.shape == (3, 3) and sen.spectral_weights.shape == (3, 3)
+    np.testing.assert_allclose(sen.wavelengths, WAVELENGTHS, rtol=0)
+    w = np.array(WEIGHTS)
+    np.testing.assert_allclose(sen.spectral_weights, w / w.sum(1, keepdims=True), rtol=1e-15)
+    # written back (normalised weights) and read again: the same sensor
+    doc = scene_to_dict(*scene_from_dict(spectral_doc())[:2])
+    assert np.shape(doc["camera"]["sensor"]["spectral_weights"]) == (3, 3)
+    again = scene_from_dict(doc)[0].sensor
+    np.testing.assert_allclose(again.spectral_weights, sen.spectral_weights, rtol=1e-15)
+    # equal weights when spectral_weights is left out; trichromatic files unchanged
+    doc = spectral_doc()
+    del doc["camera"]["sensor"]["spectral_weights"]
+    np.testing.assert_allclose(scene_from_dict(doc)[0].sensor.spectral_weights, 1 / 3)
+    tri = cli.example_document("paper-focused", crop=(16, 16))
+    assert scene_from_dict(tri)[0].sensor.spectral_weights is None
+
+
+def _capture(monkeypatch) -> dict:
+    """The predicted float arrays that ``predict`` writes to raw.tiff, srgb.png and
+    psf_log.png (the files themselves are quantised)."""
+    got = {}
+    raw, png, psf_log = _output.write_tiff_raw, _output.write_png_srgb, cli.write_psf_png
+
+    def tiff(path, cfa, **kw):
+        got["cfa"] = np.array(cfa, dtype=float)
+        return raw(path, cfa, **kw)
+
+    def srgb(path, img):
+        if str(path).endswith("srgb.png"):
+            got["srgb"] = np.array(img, dtype=float)
+        return png(path, img)
+
+    def psf_png(path, psf):
+        got["psf"] = np.array(psf, dtype=float)
+        return psf_log(path, psf)
+
+    monkeypatch.setattr(_output, "write_tiff_raw", tiff)
+    monkeypatch.setattr(_output, "write_png_srgb", srgb)
+    monkeypatch.setattr(cli, "write_psf_png", psf_png)
+    return got
+
+
+@pytest.mark.slow
+def test_spectral_predict_equals_simulate(tmp_path, monkeypatch):
+    import equinox as eqx
+
+    monkeypatch.delenv("DIFSTAR_DEVICES", raising=False)
+    scene_file = tmp_path / "spectral.json"
+    scene_file.write_text(json.dumps(spectral_doc()))
+    got = _capture(monkeypatch)
+    assert cli.main(["predict", str(scene_file), "--out", str(tmp_path / "out")]) == 0
+    cam, scene = python_camera()
+    grid = difstar.choose_grid(cam, scene, crop=(32, 32), padding=0.5)
+    ref = eqx.filter_jit(difstar.simulate)(cam, scene, grid)
+    assert ref.psf.shape[0] == 3 and got["cfa"].shape == (32, 32)
+    for name in ("cfa", "srgb", "psf"):
+        want = np.asarray(getattr(ref, name))
+        assert np.abs(got[name] - want).max() <= 1e-12 * np.abs(want).max(), name
+    # not a trichromatic render: the blue channel differs from 450 nm alone
+    tri = eqx.tree_at(lambda c: (c.sensor.wavelengths, c.sensor.spectral_weights), cam,
+                      (cam.sensor.wavelengths[:, 1], None), is_leaf=lambda x: x is None)
+    mono = difstar.simulate(tri, scene, grid)
+    assert np.abs(np.asarray(mono.psf) - got["psf"]).max() > 1e-3 * got["psf"].max()
+    written = json.loads((tmp_path / "out" / "scene.json").read_text())
+    assert written["camera"]["sensor"]["spectral_weights"] == WEIGHTS
+
+
+CHILD = textwrap.dedent('''
+    import json, sys
+    import numpy as np
+    sys.path.insert(0, "tests")
+    import jax
+    from test_scene_file import spectral_doc
+    from difstar import cli
+    from difstar.io import _output
+
+    got = {}
+    raw = _output.write_tiff_raw
+    def tiff(path, cfa, **kw):
+        got["cfa"] = np.array(cfa, dtype=float)
+        return raw(path, cfa, **kw)
+    _output.write_tiff_raw = tiff
+    keep = cli.write_psf_png
+    def psf_png(path, psf):
+        got["psf"] = np.array(psf, dtype=float)
+        return keep(path, psf)
+    cli.write_psf_png = psf_png
+
+    out = {"devices": jax.device_count()}
+    scene = sys.argv[1] + "/spectral.json"
+    with open(scene, "w") as f:
+        json.dump(spectral_doc(), f)
+    res = {}
+    for tag, extra in (("one", []), ("two", ["--devices", "2"])):
+        rc = cli.main(["--x64", "predict", scene, "--out", sys.argv[1] + "/" + tag] + extra)
+        out["rc_" + tag] = rc
+        res[tag] = dict(got)
+    for name in ("cfa", "psf"):
+        a, b = res["one"][name], res["two"][name]
+        out[name] = float(np.abs(a - b).max() / np.abs(a).max())
+    print("RESULT " + json.dumps(out))
+''')
+
+
+@pytest.mark.slow
+def test_spectral_predict_on_two_host_devices_equals_one(tmp_path):
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env.pop("DIFSTAR_DEVICES", None)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    p = subprocess.run([sys.executable, "-c", CHILD, str(tmp_path)], cwd=root, env=env,
+                       capture_output=True, text=True, timeout=300)
+    line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
+    assert p.returncode == 0 and line, p.stderr[-3000:]
+    r = json.loads(line[-1][7:])
+    assert r["devices"] == 2 and r["rc_one"] == 0 and r["rc_two"] == 0, r
+    assert "sharded over the devices" in p.stderr and "wavelengths 3/3 done" in p.stderr
+    assert r["cfa"] < 1e-12 and r["psf"] < 1e-12, r
+
+
+def _sensor(**edit) -> dict:
+    doc = spectral_doc()
+    sd = doc["camera"]["sensor"]
+    for k, v in edit.items():
+        if v is None:
+            sd.pop(k, None)
+        else:
+            sd[k] = v
+    return doc
+
+
+WL = WAVELENGTHS
+BAD = [
+    ("ragged", dict(wavelengths=[WL[0][:2], WL[1], WL[2]]),
+     "camera/sensor/wavelengths:", "2, 3, 3 wavelengths (ragged)"),
+    ("two channels", dict(wavelengths=WL[:2]), "camera/sensor/wavelengths:", "3 lists of K"),
+    ("numbers and lists", dict(wavelengths=[WL[0], 530e-9, WL[2]]),
+     "camera/sensor/wavelengths:", "mixes numbers and lists"),
+    ("nanometres", dict(wavelengths=[[580, 610, 640], WL[1], WL[2]]),
+     "camera/sensor/wavelengths/0/0", "<= 0.001"),
+    ("negative", dict(wavelengths=[WL[0], [500e-9, -5e-7, 560e-9], WL[2]]),
+     "camera/sensor/wavelengths/1/1", "> 0"),
+    ("not a number", dict(wavelengths=[WL[0], WL[1], [430e-9, "450", 470e-9]]),
+     "camera/sensor/wavelengths/2/1", "not a number"),
+    ("empty channel", dict(wavelengths=[[], WL[1], WL[2]], spectral_weights=None),
+     "camera/sensor/wavelengths/0", "give 1 to"),
+    ("weights ragged", dict(spectral_weights=[[1, 1], [1, 1, 1], [1, 1, 1]]),
+     "camera/sensor/spectral_weights:", "(ragged)"),
+    ("weights of another K", dict(spectral_weights=[[1, 1]] * 3),
+     "camera/sensor/spectral_weights:", "2 weights per channel for 3 wavelengths"),
+    ("weight negative", dict(spectral_weights=[[1, -1, 1], [1, 1, 1], [1, 1, 1]]),
+     "camera/sensor/spectral_weights/0/1", ">= 0"),
+    ("channel all zero", dict(spectral_weights=[[1, 1, 1], [0, 0, 0], [1, 1, 1]]),
+     "camera/sensor/spectral_weights/1", "weight > 0"),
+    ("weights, trichromatic", dict(wavelengths=[600e-9, 530e-9, 450e-9]),
+     "camera/sensor/spectral_weights:", "3 lists of K"),
+    ("NaN wavelength", dict(wavelengths="NAN"), "camera/sensor/wavelengths/0/1", "NaN"),
+    ("Infinity weight", dict(spectral_weights="INF"),
+     "camera/sensor/spectral_weights/2/0", "Infinity"),
+]
+
+
+@pytest.mark.parametrize("name,edit,field,words", BAD, ids=[b[0] for b in BAD])
+def test_bad_spectral_scene_is_refused(tmp_path, capsys, name, edit, field, words):
+    text = json.dumps(_sensor(**edit))
+    text = text.replace('"NAN"', "[[5e-7, NaN, 6e-7], [5e-7, 5e-7, 5e-7], [4e-7, 4e-7, 4e-7]]")
+    text = text.replace('"INF"', "[[1, 1, 1], [1, 1, 1], [Infinity, 1, 1]]")
+    scene = tmp_path / "bad.json"
+    scene.write_text(text)
+    assert cli.main(["predict", str(scene), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("difstar: error: ")
+    assert f"field {field}" in err and words in err and "give" in err, err
+    assert not (tmp_path / "o").exists()
+    if "NAN" not in text and "INF" not in text:  # the Python entry point: the same error
+        with pytest.raises(SceneError, match=field):
+            scene_from_dict(json.loads(text))
