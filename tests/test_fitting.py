@@ -460,6 +460,10 @@ def test_flip_hop_leaves_the_twin_of_a_defocus():
     assert hop["tried"][1]["change"] == "z4 negated"
     with pytest.raises(FitInputError, match="flip"):
         fit(model, data, stages=[stage, {"hop": {"flip": ["z99"]}}])
+    # a second start put by hand (set) works the same way
+    res = fit(model, data, stages=[stage, {"hop": {"set": {"z4": 300.0}, "stages": 1}}])
+    assert abs(res.values["z4"] - z4 * 1e9) < max(4 * res.errors["z4"], 5.0)
+    assert [s for s in res.stages if "hop" in s][0]["tried"][1]["change"] == "set z4=300"
 
 
 def test_disc_source_through_a_response_curve_in_an_exposure_bracket():

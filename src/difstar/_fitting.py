@@ -1051,7 +1051,10 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
       ``{"flip": ["z6"], "stages": 2}`` negates each named parameter in turn instead —
       for the sign ambiguities of even wavefront terms in an in-focus image (the
       "twin" of phase retrieval: W(x, y) and −W(−x, −y) give the same image for a
-      centrally symmetric pupil, so an almost symmetric one has a near-twin minimum).
+      centrally symmetric pupil, so an almost symmetric one has a near-twin minimum);
+      ``{"set": {"z4": 0, "z5": 0}, "stages": 3}`` puts the named parameters at those
+      values, all at once (a second start for the wavefront from zero: a rough start's
+      wavefront can settle in a neighbouring minimum).
 
     Each stage starts from the last one's values. Standard errors are computed at the
     end for every free parameter on the pixels; those of parameters last fitted in a
@@ -1165,21 +1168,26 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
     def hop(si, st, values, datas):
         """Re-run the ``stages`` solving stages before this one (hop stages are passed
         over) from ``values`` changed in each way the hop names: ``name`` moved by each
-        of ``offsets``, or each name in ``flip`` negated (σ as before the hop: they do
-        not re-estimate the noise); keep whichever ends at the lowest χ² on all pixels,
-        the unchanged result included."""
+        of ``offsets``, each name in ``flip`` negated, or the parameters of ``set`` put
+        at its values, all at once (σ as before the hop: they do not re-estimate the
+        noise); keep whichever ends at the lowest χ² on all pixels, the unchanged
+        result included."""
         nonlocal status, ok, steps, spike_errors
         h = dict(st["hop"])
         k = int(h.get("stages", 2))
         solving = [sj for sj in range(si) if stages[sj].get("hop") is None]
         flips = list(h.get("flip", ()))
         name = h.get("name")
-        bad = [q for q in flips + ([name] if name is not None else []) if q not in model.params]
-        if (bad or not 1 <= k <= len(solving) or (name is None) == (not flips)
+        put = dict(h.get("set", {}))
+        bad = [q for q in flips + list(put) + ([name] if name is not None else [])
+               if q not in model.params]
+        kinds = (name is not None) + bool(flips) + bool(put)
+        if (bad or not 1 <= k <= len(solving) or kinds != 1
                 or (name is not None and not h.get("offsets"))):
-            raise FitInputError(f"fit: stage {si}: hop needs either a parameter of the model "
-                                "with offsets ({'name': ..., 'offsets': [...]}) or a list of "
-                                "parameters to negate ({'flip': [...]}), and 1 <= stages <= "
+            raise FitInputError(f"fit: stage {si}: hop needs one of: a parameter of the model "
+                                "with offsets ({'name': ..., 'offsets': [...]}), a list of "
+                                "parameters to negate ({'flip': [...]}), or values to put "
+                                "({'set': {name: value}}); and 1 <= stages <= "
                                 f"{len(solving)} earlier solving stages; got {h}"
                                 + (f" (unknown: {bad})" if bad else "") + ".")
         ref = list(datas)
@@ -1191,7 +1199,9 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         tried = [{"change": "none", "chi2": best[0]}]
         moves = ([(f"{name} {float(off):+g}", {name: values[name] + float(off)})
                   for off in h.get("offsets", ()) if name is not None]
-                 + [(f"{q} negated", {q: -values[q]}) for q in flips])
+                 + [(f"{q} negated", {q: -values[q]}) for q in flips]
+                 + ([("set " + ", ".join(f"{q}={x:g}" for q, x in put.items()),
+                      {q: float(x) for q, x in put.items()})] if put else []))
         for label, change in moves:
             v = dict(values)
             for q, x in change.items():
