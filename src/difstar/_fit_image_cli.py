@@ -26,6 +26,8 @@ def _figure(res, path, title):
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm, SymLogNorm
 
+    from ._fitting import values_of_capture
+
     def rows(x):
         return x if isinstance(x, list) else [x]
 
@@ -37,7 +39,7 @@ def _figure(res, path, title):
     for i, (ax, data, model, resid, mask) in enumerate(zip(axes, datas, models, resids,
                                                            masks)):
         peak = float(np.max(data[mask]))
-        bg = res.values.get("background", res.values.get(f"background@{i}", 0.0))
+        bg = values_of_capture(res.values, i).get("background", 0.0)
         lo = max(peak * 1e-4, 1e-12)
         norm = LogNorm(vmin=lo, vmax=peak)
         cap = f" (capture {i})" if n > 1 else ""
@@ -73,10 +75,15 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
     ``fainter`` = (f1, …), also fit copies of the star f times fainter
     (:func:`difstar._fitting.fainter_copy`, stand-ins for other stars) and write
     fainter.json / .md."""
+    import jax
+
     from ._fitting import FitInputError, load_manifest
     from .io._output import output_dir
 
-    if fainter and isinstance(load_manifest(manifest)[1], list):
+    jax.config.update("jax_enable_x64", True)
+    t0 = time.perf_counter()
+    loaded = load_manifest(manifest)  # read once here, for the check and the main fit
+    if fainter and isinstance(loaded[1], list):
         raise FitInputError("--fainter takes a manifest with one capture (its data is a list "
                             "of captures); leave --fainter out.")
     files = ["result.json", "fit.png", "model.npy"]
@@ -86,7 +93,8 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         files += ["fainter.json", "fainter.md"]
     with output_dir(out, overwrite=overwrite, inputs=[manifest], will_write=files,
                     command="fit-image") as tmp:
-        summary = _run(manifest, tmp, verbose=verbose, max_steps=max_steps, final=out)
+        summary = _run(manifest, loaded, t0, tmp, verbose=verbose, max_steps=max_steps,
+                       final=out)
         if robustness:
             _robustness(manifest, tmp, summary, robustness, seed, max_steps=max_steps,
                         verbose=verbose, about=rough_about)
@@ -150,13 +158,12 @@ def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose,
                 about="start") -> dict:
     """Refit from ``n`` perturbed starts (about the manifest's starts or the main fit's
     ``about="result"``); compare each result with the main fit."""
-    from ._fitting import PERTURB, fit, load_manifest, perturbed_starts
+    from ._fitting import PERTURB, fit, load_manifest, perturbed_starts, values_of_capture
 
     model, data, opts = load_manifest(manifest)
     ref, err = summary["values"], summary["errors"]
     # about the result: a per-capture parameter starts from its first capture's value
-    centre = model if about == "start" else model.with_values(
-        {k: ref.get(f"{k}@0", ref.get(k)) for k in model.params if k in ref or f"{k}@0" in ref})
+    centre = model if about == "start" else model.with_values(values_of_capture(ref, 0))
     rows = []
     for i, start in enumerate(perturbed_starts(centre, n, rel=PERTURB, seed=seed)):
         t = time.perf_counter()
@@ -197,14 +204,12 @@ def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose,
     return study
 
 
-def _run(manifest, out, *, verbose, max_steps, final) -> dict:
-    import jax
+def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
+    """The main fit of ``loaded`` = :func:`load_manifest`'s (model, data, options),
+    loaded at ``t0`` (the wall time counts from there)."""
+    from ._fitting import fit, model_spike_angles, spike_angles, values_of_capture
 
-    jax.config.update("jax_enable_x64", True)
-    from ._fitting import fit, load_manifest, model_spike_angles, spike_angles
-
-    t0 = time.perf_counter()
-    model, data, opts = load_manifest(manifest)
+    model, data, opts = loaded
     res = fit(model, data, stages=opts["stages"], starts=opts["starts"],
               max_steps=max_steps or opts["max_steps"], verbose=verbose,
               per_capture=opts["per_capture"])
@@ -215,8 +220,7 @@ def _run(manifest, out, *, verbose, max_steps, final) -> dict:
     # spike angles of the first capture (the others share the pupil)
     first = data[0] if isinstance(data, list) else data
     mimg = res.model_image[0] if isinstance(data, list) else res.model_image
-    v0 = {**res.values, **{k.split("@")[0]: x for k, x in res.values.items()
-                           if k.endswith("@0")}}
+    v0 = values_of_capture(res.values, 0)
     h, w = first.image.shape
     centre = (w // 2 + v0["x0"], h // 2 + v0["y0"])
     bgsub = np.where(first.mask, first.image - v0["background"], 0.0)

@@ -927,6 +927,20 @@ def _residual_fn(model: ImageModel, data, target):
     return res
 
 
+def _model_images(model: ImageModel, values: Mapping[str, float], datas) -> list:
+    """The model image of each of ``datas``'s windows at ``values`` (not jitted: for the
+    one-off images a stage needs before it solves)."""
+    v = {k: jnp.asarray(x, float) for k, x in values.items()}
+    return _residual_fn(model.with_values(values), datas, [_PixelTarget(d) for d in datas])(v)[1]
+
+
+def values_of_capture(values: Mapping[str, Any], i: int) -> dict:
+    """The values capture ``i`` of a fit saw: ``name@i`` read as ``name`` (a fit's
+    result, or a result.json's values, for any per-capture names)."""
+    tag = f"@{i}"
+    return {**values, **{k[:-len(tag)]: x for k, x in values.items() if k.endswith(tag)}}
+
+
 def _as_list(x):
     return list(x) if isinstance(x, (list, tuple)) else [x]
 
@@ -1096,9 +1110,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
             raise FitInputError(f"fit: stage {si} frees {sorted(bad)}, which are not free "
                                 "parameters of the model.")
         if st.get("noise_from_residuals") is not None:
-            v = {k: jnp.asarray(x, float) for k, x in values.items()}
-            mimgs = _residual_fn(model.with_values(values), datas,
-                                 [_PixelTarget(d) for d in datas])(v)[1]
+            mimgs = _model_images(model, values, datas)
             noises = []
             for i, mi in enumerate(mimgs):
                 bg = model.capture_values(values, i)["background"]
@@ -1117,9 +1129,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         if st.get("spikes") is not None:
             mimgs = [None] * len(ds)
             if st["spikes"].get("directions") == "model":
-                v = {k: jnp.asarray(x, float) for k, x in values.items()}
-                mimgs = _residual_fn(model.with_values(values), ds,
-                                     [_PixelTarget(d) for d in ds])(v)[1]
+                mimgs = _model_images(model, values, ds)
             targets = [spike_target(d, model.capture_values(values, i), model_image=mi,
                                     **dict(st["spikes"]))
                        for i, (d, mi) in enumerate(zip(ds, mimgs))]
