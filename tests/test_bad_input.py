@@ -26,6 +26,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from difstar.cli import example_document, main
+from difstar.io._output import MARKER
 from difstar.io._scene import SceneError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -516,7 +517,10 @@ def _start_predict(work: Path, out: Path) -> subprocess.Popen:
 def _wait_for_tmp(work: Path, proc, timeout=120.0) -> Path:
     t0 = time.time()
     while time.time() - t0 < timeout:
-        tmps = [p for p in work.iterdir() if ".difstar-tmp-" in p.name]
+        # the folder with its marker: a folder killed before its marker is written is
+        # (rightly) not difstar's to remove, so the kill must come after it
+        tmps = [p for p in work.iterdir()
+                if ".difstar-tmp-" in p.name and (p / MARKER).is_file()]
         if tmps:
             return tmps[0]
         if proc.poll() is not None:
