@@ -347,9 +347,13 @@ def make_residual_fn(model: FitModel, *, jac_batch: int = 4) -> Callable:
             return y, jax.tree_util.tree_map(jnp.zeros_like, y)
         # one trace of the chain: linearised once, its linear map applied to the columns
         y, column = jax.linearize(lambda v: raw(v, args), u)
-        cols = jax.lax.map(column, jnp.eye(u.shape[0], dtype=u.dtype),
-                           batch_size=min(jac_batch, u.shape[0]))
-        dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c, axes=1), cols)
+        n = u.shape[0]
+        b = min(jac_batch, n)
+        # the directions padded with zero rows to a whole number of batches: lax.map
+        # would trace (and compile) the leftover directions as a second, smaller batch
+        eye = jnp.eye(-(-n // b) * b, n, dtype=u.dtype)
+        cols = jax.lax.map(column, eye, batch_size=b)
+        dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c[:n], axes=1), cols)
         return y, dy
 
     # jitted, so that the solver's init, its step, the residuals and the Jacobian reuse
