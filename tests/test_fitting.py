@@ -34,13 +34,14 @@ TRUE = {"x0": 0.31, "y0": -0.22, "rotation": 4.0, "flux": 1000.0, "background": 
 
 
 def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n=1024,
-                radius=0.425, obstruction=0.16, strut_width=0.06, z4=0.0, disc=0.0,
-                blades=0, lam=LAM):
+                radius=0.425, obstruction=0.16, strut_width=0.06, z4=0.0, z11=0.0,
+                disc=0.0, blades=0, lam=LAM):
     """Fraction of power per data pixel by a NumPy FFT of a pupil raster (y up), then
     ``flux`` × that + ``background``. Independent of difstar's engine. ``z4``: Noll
     defocus (m RMS over the radius 1.1 ``radius``, the circle builder's max_radius),
     entering as exp(−i k W) in this FFT's sign convention (the one in which the phase
-    ramp of a shift +x0 is exp(+i k θ x): difstar's exp(+i k W) with W = −θ x). ``disc``:
+    ramp of a shift +x0 is exp(+i k θ x): difstar's exp(+i k W) with W = −θ x); ``z11``:
+    Noll primary spherical, √5 (6ρ⁴ − 6ρ² + 1), the same way. ``disc``:
     the source is a uniform disc of that radius (data pixels), convolved on the fine
     grid with an 8 × 8 anti-aliased raster of it before the pixels integrate.
     ``blades`` > 0: instead of the obstructed circle, a regular polygon of that many
@@ -67,9 +68,11 @@ def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n
     ax = 1.5 * delta + x0 * P * ARCSEC
     ay = 1.5 * delta - y0 * P * ARCSEC
     field = cov * np.exp(2j * math.pi * (xc[None, :] * ax + xc[:, None] * ay) / lam)
-    if z4:
+    if z4 or z11:
         rho2 = (xc[None, :] ** 2 + xc[:, None] ** 2) / (1.1 * radius) ** 2
-        field = field * np.exp(-2j * math.pi * z4 * math.sqrt(3) * (2 * rho2 - 1) / lam)
+        w = z4 * math.sqrt(3) * (2 * rho2 - 1) + z11 * math.sqrt(5) * (
+            6 * rho2 ** 2 - 6 * rho2 + 1)
+        field = field * np.exp(-2j * math.pi * w / lam)
     big = np.zeros((n, n), complex)
     big[:2 * half, :2 * half] = field
     inten = np.abs(np.fft.fftshift(np.fft.fft2(big))) ** 2 / (n * n * np.sum(cov))
@@ -464,6 +467,41 @@ def test_flip_hop_leaves_the_twin_of_a_defocus():
     res = fit(model, data, stages=[stage, {"hop": {"set": {"z4": 300.0}, "stages": 1}}])
     assert abs(res.values["z4"] - z4 * 1e9) < max(4 * res.errors["z4"], 5.0)
     assert [s for s in res.stages if "hop" in s][0]["tried"][1]["change"] == "set z4=300"
+
+
+def test_grouped_flip_hop_negates_the_even_terms_together():
+    """The twin of a wavefront with defocus and spherical aberration negates both terms
+    at once. Started at the twin (−z4, −z11) of the independent generator's wavefront, a
+    hop whose flip entry is the group [z4, z11] ends at the generator's (+z4, +z11) with
+    the lower χ²; each term negated alone is not the twin."""
+    z4, z11 = 300e-9, 120e-9
+    clean = _numpy_star(**TRUE, z4=z4, z11=z11)
+    sigma = 2e-3 * clean.max()
+    data = FitData.from_array(clean + np.random.default_rng(5).normal(0, sigma, clean.shape),
+                              sigma=sigma)
+    fixed = {k: Param(TRUE[k]) for k in ("rotation", "x0", "y0", "background")}
+    model = ImageModel(obstructed_circle_pupil(0.425),
+                       fixed | {"flux": Param(TRUE["flux"], True, scale=100.0),
+                                "pixel_scale": Param(P), "obstruction": Param(0.16),
+                                "strut_width": Param(0.06),
+                                "z4": Param(-z4 * 1e9, True, (-1000, 1000)),
+                                "z11": Param(-z11 * 1e9, True, (-500, 500))},
+                       light=Light.monochromatic(LAM), zernike=[4, 11], pad=4,
+                       accuracy=3e-3)
+    stage = {"free": ["z4", "z11", "flux"], "max_steps": 30}
+    res = fit(model, data, stages=[stage, {"hop": {"flip": ["z4", "z11", ["z4", "z11"]],
+                                                   "stages": 1}}])
+    tried = [s for s in res.stages if "hop" in s][0]["tried"]
+    assert [t["change"] for t in tried] == ["none", "z4 negated", "z11 negated",
+                                            "z4, z11 negated"]
+    twin, group = tried[0]["chi2"], tried[3]["chi2"]
+    assert group < twin and group == min(t["chi2"] for t in tried)
+    assert abs(res.values["z4"] - z4 * 1e9) < max(4 * res.errors["z4"], 5.0)
+    assert abs(res.values["z11"] - z11 * 1e9) < max(4 * res.errors["z11"], 5.0)
+    with pytest.raises(FitInputError, match="flip"):
+        fit(model, data, stages=[stage, {"hop": {"flip": [["z4", "z99"]]}}])
+    with pytest.raises(FitInputError, match="flip"):
+        fit(model, data, stages=[stage, {"hop": {"flip": [[]]}}])
 
 
 def test_disc_source_through_a_response_curve_in_an_exposure_bracket():

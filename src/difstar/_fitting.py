@@ -1062,7 +1062,9 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
       "stages": 2}``): re-run the ``stages`` solving stages before it with that
       parameter moved by each offset and keep the lowest χ² on all pixels: a way out of
       a neighbouring basin that the other parameters' adaptation makes self-consistent;
-      ``{"flip": ["z6"], "stages": 2}`` negates each named parameter in turn instead —
+      ``{"flip": ["z6"], "stages": 2}`` negates each named parameter in turn instead
+      (an entry that is a list of names negates those together: ``{"flip": [["z4",
+      "z5", "z6", "z11"]]}`` is the whole twin of the even terms) —
       for the sign ambiguities of even wavefront terms in an in-focus image (the
       "twin" of phase retrieval: W(x, y) and −W(−x, −y) give the same image for a
       centrally symmetric pupil, so an almost symmetric one has a near-twin minimum);
@@ -1186,17 +1188,23 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         h = dict(st["hop"])
         k = int(h.get("stages", 2))
         solving = [sj for sj in range(si) if stages[sj].get("hop") is None]
-        flips = list(h.get("flip", ()))
+        # each entry of flip: one name, or a list of names negated together (the twin)
+        flips = [(q,) if isinstance(q, str) else tuple(q) for q in h.get("flip", ())]
         name = h.get("name")
         put = dict(h.get("set", {}))
-        bad = [q for q in flips + list(put) + ([name] if name is not None else [])
-               if q not in model.params]
+        bad = [q for q in [q for g in flips for q in g] + list(put)
+               + ([name] if name is not None else [])
+               if not isinstance(q, str) or q not in model.params]
+        if any(not g for g in flips):
+            bad.append("[] (an empty group)")
         kinds = (name is not None) + bool(flips) + bool(put)
         if (bad or not 1 <= k <= len(solving) or kinds != 1
                 or (name is not None and not h.get("offsets"))):
             raise FitInputError(f"fit: stage {si}: hop needs one of: a parameter of the model "
                                 "with offsets ({'name': ..., 'offsets': [...]}), a list of "
-                                "parameters to negate ({'flip': [...]}), or values to put "
+                                "parameters to negate, each a name or a list of names "
+                                "negated together ({'flip': ['z6', ['z4', 'z11']]}), or "
+                                "values to put "
                                 "({'set': {name: value}}); and 1 <= stages <= "
                                 f"{len(solving)} earlier solving stages; got {h}"
                                 + (f" (unknown: {bad})" if bad else "") + ".")
@@ -1209,7 +1217,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         tried = [{"change": "none", "chi2": best[0]}]
         moves = ([(f"{name} {float(off):+g}", {name: values[name] + float(off)})
                   for off in h.get("offsets", ()) if name is not None]
-                 + [(f"{q} negated", {q: -values[q]}) for q in flips]
+                 + [(", ".join(g) + " negated", {q: -values[q] for q in g}) for g in flips]
                  + ([("set " + ", ".join(f"{q}={x:g}" for q, x in put.items()),
                       {q: float(x) for q, x in put.items()})] if put else []))
         for label, change in moves:
