@@ -14,12 +14,15 @@ times, after a first run that compiles:
   ``difstar._batch.lapack_in_turn``);
 - design sweep: ``difstar._design_cli.sweep_designs`` of ``--designs`` 9-blade irises at
   f/8 (``difstar design --quick``'s setup: 64² focused and 64² defocused PSFs per design),
-  curvature evenly over [0, 0.9].
+  curvature evenly over [0, 0.9];
+- one fit's Jacobian: a solver step of the synthetic campaign's fit (10 captures, 21
+  free values; ``difstar fit --devices N``), its Jacobian's columns shared out over the
+  devices (``Fitter(devices=N)``), mean over ``--steps`` steps.
 
 Efficiency = t1 / (N · tN); cost per item = tN / items. Prints a Markdown table.
 
     python benchmarks/sharding.py [--devices 1 2] [--crop 64] [--wavelengths 8] [--fits 4]
-        [--designs 16]
+        [--designs 16] [--only spectral fit design jacobian]
 """
 
 from __future__ import annotations
@@ -60,6 +63,30 @@ if "design" in cfg["only"]:
     best = min(best, time.perf_counter() - t0)
   out["design_s"] = best
   out["design_items"] = len(designs)
+  print("RESULT " + json.dumps(out))
+  sys.exit(0)
+if "jacobian" in cfg["only"]:
+  # one fit: the synthetic campaign's 10 captures, its Jacobian's columns shared out
+  from difstar._fit import Fitter, make_args, to_unconstrained
+  from difstar._fit_cli import observed_data, prepare
+  from difstar.io._manifest import load_manifest
+  man = load_manifest("fit/synthetic-paper-camera/manifest.json")
+  model, caps = prepare(man)
+  fitter = Fitter(model, method=man.solver["method"], devices=n)
+  u = to_unconstrained(model)
+  a = make_args(model, observed_data(model, caps, man.noise), u)
+  state = fitter._init(u, a)
+  jax.block_until_ready(fitter._step(u, state, a))  # compile
+  best = float("inf")
+  for _ in range(cfg["repeats"]):
+    v, st = u, state
+    t0 = time.perf_counter()
+    for _ in range(cfg["steps"]):
+      v, st, *_ = fitter._step(v, st, a)
+    jax.block_until_ready(v)
+    best = min(best, (time.perf_counter() - t0) / cfg["steps"])
+  out["jacobian_s"] = best
+  out["jacobian_items"] = model.n_free
   print("RESULT " + json.dumps(out))
   sys.exit(0)
 if "spectral" in cfg["only"]:
@@ -124,11 +151,13 @@ def main(argv=None) -> int:
     ap.add_argument("--designs", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--timeout", type=float, default=300, help="seconds per measurement")
+    ap.add_argument("--only", nargs="+", choices=["spectral", "fit", "design", "jacobian"],
+                    help="measure only these workloads (default: all)")
     a = ap.parse_args(argv)
     cfg = {"crop": a.crop, "wavelengths": a.wavelengths, "fits": a.fits, "steps": a.steps,
            "repeats": a.repeats, "designs": a.designs}
-    rows = {key: {n: measure(n, cfg, key, a.timeout) for n in a.devices}
-            for key in ("spectral", "fit", "design")}
+    keys = a.only or ["spectral", "fit", "design", "jacobian"]
+    rows = {key: {n: measure(n, cfg, key, a.timeout) for n in a.devices} for key in keys}
     n0 = a.devices[0]
     print(f"# Sharding (issue 17): {os.cpu_count()} CPUs, host CPU devices, single-threaded Eigen; "
           f"float64; best of {a.repeats} after compiling")
@@ -138,7 +167,12 @@ def main(argv=None) -> int:
                         f"{a.wavelengths} wavelengths per channel; item = one per channel)"),
                        ("fit", f"small fits ({a.steps} LM steps each)"),
                        ("design", "design sweep (9-blade irises, 64² focused + 64² "
-                        "defocused PSF each)")):
+                        "defocused PSF each)"),
+                       ("jacobian", f"one fit's solver step, Jacobian columns shared out "
+                        f"(synthetic campaign: 10 captures; item = one column; wall = one "
+                        f"step, mean of {a.steps})")):
+        if key not in rows:
+            continue
         r0 = rows[key][n0]
         for n, r in rows[key].items():
             if r is None or r0 is None:

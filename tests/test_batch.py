@@ -179,15 +179,18 @@ def test_cli_devices_errors_exit_2_with_one_line(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
-def test_fit_devices_without_a_study_is_refused(tmp_path, capsys):
+def test_fit_devices_for_a_single_fit_are_checked_first(tmp_path, capsys):
+    """``fit --devices N`` without a study shares one fit's Jacobian out (tested in
+    test_fit.py); a bad count is refused before anything is read or written."""
     from difstar.cli import main
 
     manifest = Path(__file__).resolve().parents[1] / "fit" / "synthetic-paper-camera" / \
         "manifest.json"
-    rc = main(["fit", str(manifest), "--out", str(tmp_path / "out"), "--devices", "1"])
-    err = capsys.readouterr().err.strip()
-    assert rc == 2 and err.count("\n") == 0 and "--devices" in err
-    assert not (tmp_path / "out").exists()
+    for bad in ("0", "2.5", "999"):
+        rc = main(["fit", str(manifest), "--out", str(tmp_path / "out"), "--devices", bad])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and err.count("\n") == 0 and "--devices" in err, err
+        assert not (tmp_path / "out").exists()
 
 
 HANG_CHILD = textwrap.dedent('''

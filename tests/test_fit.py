@@ -274,3 +274,59 @@ def test_difstar_fit_runs_end_to_end(tmp_path):
     assert labels[-1] == "response-curve restarts" and len(labels) >= 3
     assert res["timing_s"]["first_step_since_start"] > 0
     assert (out / "table1.md").exists()
+
+
+SHARDED_CHILD = '''
+import faulthandler, json, sys
+faulthandler.dump_traceback_later(float(sys.argv[1]), exit=True)  # a hang fails loudly
+import jax, numpy as np
+jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, "tests")
+from test_fit import F, _data, _model, _start
+model = _model()
+fitter, data = _data(model, noise_sigma=1e-3)
+u0 = np.asarray(_start(model, 0.1, seed=0))
+args = F.make_args(model, data, u0)
+one = fitter.solve(u0, args, max_steps=4)
+out = {"devices": jax.device_count(), "n_free": model.n_free,
+       "moved": float(np.abs(np.asarray(one.u) - u0).max())}
+j1 = np.asarray(fitter._jac(u0, args))
+for d in (2, 4):
+    f = F.Fitter(model, devices=d)
+    jd = np.asarray(f._jac(u0, args))
+    res = f.solve(u0, args, max_steps=4)
+    out[f"mesh_{d}"] = int(f.mesh.size)
+    out[f"jac_{d}"] = float(np.abs(jd - j1).max() / np.abs(j1).max())
+    out[f"du_{d}"] = float(np.abs(np.asarray(res.u) - np.asarray(one.u)).max())
+    out[f"loss_{d}"] = abs(res.loss - one.loss) / one.loss
+out["mesh_1"] = F.Fitter(model, devices=1).mesh
+print("RESULT " + json.dumps(out), flush=True)
+'''
+
+
+@pytest.mark.slow
+def test_one_fit_with_its_jacobian_shared_out_over_host_devices():
+    """One fit, its Jacobian's columns shared out over 2 and 4 host CPU devices (7 free
+    parameters: 2 or 4 directions per device, padded with zero rows): the Jacobian and
+    four solver steps equal the one-device fit's to rounding. ``NPROC=2`` keeps XLA's
+    CPU pool at 2 threads, where several devices' LAPACK calls once hung (see
+    ``_batch.lapack_in_turn``); the child dumps its stacks and exits past the limit."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", NPROC="2")
+    env.pop("DIFSTAR_DEVICES", None)
+    root = Path(__file__).resolve().parents[1]
+    limit = 300
+    p = subprocess.run([sys.executable, "-c", SHARDED_CHILD, str(limit)], cwd=root, env=env,
+                       capture_output=True, text=True, timeout=limit + 60)
+    line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
+    assert p.returncode == 0 and line, p.stderr[-3000:]
+    r = json.loads(line[-1][7:])
+    assert r["devices"] == 4 and r["n_free"] == 7 and r["mesh_1"] is None, r
+    assert r["moved"] > 1e-3, r  # the fit did step
+    for d in (2, 4):
+        assert r[f"mesh_{d}"] == d, r
+        assert r[f"jac_{d}"] < 1e-12 and r[f"du_{d}"] < 1e-10 and r[f"loss_{d}"] < 1e-12, r

@@ -313,7 +313,7 @@ def noise_sigma(zeta, *, gain_e_per_dn, read_noise_dn, full_scale_dn):
     return jnp.sqrt(z / (gain_e_per_dn * full_scale_dn) + (read_noise_dn / full_scale_dn) ** 2)
 
 
-def make_residual_fn(model: FitModel, *, jac_batch: int = 4) -> Callable:
+def make_residual_fn(model: FitModel, *, jac_batch: int = 4, mesh=None) -> Callable:
     """``fn(u, args) -> residuals`` per configuration, (K_c, h, w).
 
     ``args = {"data": {config: (ζ_obs, weight)}, "active": (P,), "u_ref": (P,)}``: only
@@ -326,6 +326,13 @@ def make_residual_fn(model: FitModel, *, jac_batch: int = 4) -> Callable:
     directions at once would hold P copies of every grid-sized intermediate (tens of
     GB for a few captures on 400² grids); this way the solver's linearisation keeps only
     the (residuals × P) matrix.
+
+    ``mesh`` (a one-axis :func:`difstar._batch.device_mesh` of more than one device):
+    the Jacobian's columns of this one fit are shared out over its devices
+    (``shard_map``): each device linearises the chain at ``u`` (the forward model, a
+    few per cent of a step, is repeated on every device) and computes its own slice of
+    the parameter directions, ``jac_batch`` at a time; the rest of the step (the solve
+    for the update, on a P-column matrix) is the same on every device.
     """
 
     def raw(u, args):
@@ -333,6 +340,14 @@ def make_residual_fn(model: FitModel, *, jac_batch: int = 4) -> Callable:
         x = from_unconstrained(model, u_eff)
         pred = predict(model, x)
         return {k: (pred[k] - args["data"][k][0]) * args["data"][k][1] for k in pred}
+
+    n_dev = 1 if mesh is None else int(mesh.size)
+
+    def columns(eye, u, args):
+        # one trace of the chain: linearised once, its linear map applied to the rows
+        # of eye (parameter directions), jac_batch at a time
+        _, column = jax.linearize(lambda v: raw(v, args), u)
+        return jax.lax.map(column, eye, batch_size=min(jac_batch, eye.shape[0]))
 
     @jax.custom_jvp
     def fn(u, args):
@@ -342,17 +357,24 @@ def make_residual_fn(model: FitModel, *, jac_batch: int = 4) -> Callable:
     def _fn_jvp(primals, tangents):
         u, args = primals
         du = tangents[0]  # the data are not differentiated
-        if u.shape[0] == 0:
+        n = u.shape[0]
+        if n == 0:
             y = raw(u, args)
             return y, jax.tree_util.tree_map(jnp.zeros_like, y)
-        # one trace of the chain: linearised once, its linear map applied to the columns
-        y, column = jax.linearize(lambda v: raw(v, args), u)
-        n = u.shape[0]
-        b = min(jac_batch, n)
-        # the directions padded with zero rows to a whole number of batches: lax.map
-        # would trace (and compile) the leftover directions as a second, smaller batch
-        eye = jnp.eye(-(-n // b) * b, n, dtype=u.dtype)
-        cols = jax.lax.map(column, eye, batch_size=b)
+        b = min(jac_batch, -(-n // n_dev))
+        # the directions padded with zero rows to a whole number of batches on every
+        # device: lax.map would trace (and compile) leftover directions as a second,
+        # smaller batch
+        eye = jnp.eye(-(-n // (b * n_dev)) * b * n_dev, n, dtype=u.dtype)
+        if mesh is None:
+            y, column = jax.linearize(lambda v: raw(v, args), u)
+            cols = jax.lax.map(column, eye, batch_size=b)
+        else:
+            from ._batch import AXIS, P
+
+            y = raw(u, args)
+            cols = jax.shard_map(columns, mesh=mesh, in_specs=(P(AXIS), P(), P()),
+                                 out_specs=P(AXIS), check_vma=False)(eye, u, args)
         dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c[:n], axes=1), cols)
         return y, dy
 
@@ -388,12 +410,25 @@ class Fitter:
     ``args`` comes from :func:`make_args`: per configuration ``(ζ_obs, weight)``, both
     (K_c, h, w); the residual is ``(ζ_pred − ζ_obs)·weight`` with weight = 1/σ, 0 on
     saturated pixels.
+
+    ``devices`` (a count, as ``--devices``; default one device): the Jacobian's columns
+    are shared out over that many devices (see :func:`make_residual_fn`); a Fitter on
+    several devices is for one fit at a time (many fits: :func:`difstar._batch.solve_many`
+    with a one-device Fitter).
     """
 
     def __init__(self, model: FitModel, *, method: str = "lm", rtol: float = 1e-6,
-                 atol: float = 1e-6):
+                 atol: float = 1e-6, devices=None):
         self.model = model
-        fn = make_residual_fn(model)
+        mesh = None
+        if devices is not None:
+            from ._batch import device_mesh
+
+            mesh = device_mesh(devices)
+            mesh = mesh if mesh.size > 1 else None
+        #: the mesh the Jacobian's columns are shared out over (None: one device)
+        self.mesh = mesh
+        fn = make_residual_fn(model, mesh=mesh)
         self._fn = fn
         self._lm = LMStepper(fn, method=method, rtol=rtol, atol=atol)
         self._init, self._step = self._lm._init, self._lm._step  # for batched solves

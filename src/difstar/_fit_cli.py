@@ -16,6 +16,7 @@ Outer layer: files, progress printing and figures live here; :mod:`difstar._fit`
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -373,8 +374,10 @@ def compare_truth(model, x_fit: dict, truth: dict, h_range) -> dict:
     return out
 
 
-def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, fitter=None):
-    """Fit once. Returns (result document, model, caps, fitter, u)."""
+def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, fitter=None,
+                 devices=None):
+    """Fit once. Returns (result document, model, caps, fitter, u). ``devices``: share
+    the Jacobian's columns out over that many devices (``Fitter(devices=)``)."""
     import jax
 
     from difstar._fit import Fitter, to_unconstrained
@@ -384,7 +387,7 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
         model, caps = prepare(man)
     if fitter is None:
         fitter = Fitter(model, method=man.solver["method"], rtol=man.solver["rtol"],
-                        atol=man.solver["atol"])
+                        atol=man.solver["atol"], devices=devices)
     if u0 is None:
         u0 = to_unconstrained(model)
     if verbose:
@@ -774,14 +777,19 @@ def _cmd_synth(a) -> int:
 
 
 def _cmd_fit(a) -> int:
+    from difstar._batch import ENV_DEVICES
     from difstar.io._manifest import load_manifest
     from difstar.io._output import check_output_free, output_dir, write_json
     from difstar.io._scene import SceneError
 
     _enable_x64()
-    if getattr(a, "devices", None) is not None and not a.recovery_study:
-        raise SceneError("--devices: only --recovery-study runs several fits to share out; "
-                         "drop --devices for a single fit.")
+    devices = None
+    if not a.recovery_study and (getattr(a, "devices", None) is not None
+                                 or os.environ.get(ENV_DEVICES, "").strip()):
+        from difstar._batch import device_count, init_distributed
+
+        init_distributed()
+        devices = device_count(a.devices)  # a single fit: its Jacobian's columns shared out
     man = load_manifest(a.manifest)
     if a.max_steps is not None:
         man.solver["max_steps"] = a.max_steps
@@ -801,7 +809,7 @@ def _cmd_fit(a) -> int:
     out = Path(a.out) if a.out else man.folder / "result"
     check_output_free(out, overwrite=a.overwrite, inputs=inputs)
     with output_dir(out, overwrite=a.overwrite, inputs=inputs, command="fit") as tmp:
-        result, model, caps, fitter, u = fit_manifest(man)
+        result, model, caps, fitter, u = fit_manifest(man, devices=devices)
         if not math.isfinite(result["convergence"].get("reduced_chi2", 0.0)):
             raise RuntimeError("the fit's χ² is NaN or infinite; nothing was written")
         files = write_outputs(tmp, result, model, caps, fitter, u, man.noise)
@@ -857,8 +865,9 @@ def register(subparsers, name: str) -> None:
                        help="seed of the recovery study")
         p.add_argument("--devices", metavar="N",
                        help="with --recovery-study: run the fits together, sharded over N "
-                       "devices (default: $DIFSTAR_DEVICES; unset: one fit after another); "
-                       "see docs/sharding.md")
+                       "devices; for a single fit: share its Jacobian's columns out over N "
+                       "devices (default: $DIFSTAR_DEVICES; unset: one device); see "
+                       "docs/sharding.md")
         p.set_defaults(func=_cmd_fit)
     else:
         raise ValueError(f"difstar._fit_cli.register: unknown command {name!r}")
