@@ -435,23 +435,31 @@ def test_hop_leaves_a_neighbouring_basin(synthetic):
         fit(model, data, stages=[{"hop": {"name": "rotation", "offsets": [1.0]}}])
 
 
+def _twin_case(seed, **terms):
+    """Noisy data of the independent star with the given Zernike terms (m RMS: ``z4``,
+    ``z11``) and a model started at their twin (every term negated), flux free."""
+    clean = _numpy_star(**TRUE, **terms)
+    sigma = 2e-3 * clean.max()
+    data = FitData.from_array(
+        clean + np.random.default_rng(seed).normal(0, sigma, clean.shape), sigma=sigma)
+    fixed = {k: Param(TRUE[k]) for k in ("rotation", "x0", "y0", "background")}
+    zs = {k: Param(-v * 1e9, True, (-1000, 1000)) for k, v in terms.items()}
+    model = ImageModel(obstructed_circle_pupil(0.425),
+                       fixed | zs | {"flux": Param(TRUE["flux"], True, scale=100.0),
+                                     "pixel_scale": Param(P), "obstruction": Param(0.16),
+                                     "strut_width": Param(0.06)},
+                       light=Light.monochromatic(LAM), zernike=[int(k[1:]) for k in terms],
+                       pad=4, accuracy=3e-3)
+    return model, data
+
+
 def test_flip_hop_leaves_the_twin_of_a_defocus():
     """An in-focus image cannot tell W(x, y) from −W(−x, −y) for a centrally symmetric
     pupil; with three struts the twin of a defocus is a neighbouring minimum. A fit
     started at −z4 stays in it; a hop that negates z4 and re-runs the stage ends at the
     independent generator's +z4 with the lower χ²."""
     z4 = 400e-9
-    clean = _numpy_star(**TRUE, z4=z4)
-    sigma = 2e-3 * clean.max()
-    data = FitData.from_array(clean + np.random.default_rng(3).normal(0, sigma, clean.shape),
-                              sigma=sigma)
-    fixed = {k: Param(TRUE[k]) for k in ("rotation", "x0", "y0", "background")}
-    model = ImageModel(obstructed_circle_pupil(0.425),
-                       fixed | {"flux": Param(TRUE["flux"], True, scale=100.0),
-                                "pixel_scale": Param(P), "obstruction": Param(0.16),
-                                "strut_width": Param(0.06),
-                                "z4": Param(-z4 * 1e9, True, (-1000, 1000))},
-                       light=Light.monochromatic(LAM), zernike=[4], pad=4, accuracy=3e-3)
+    model, data = _twin_case(3, z4=z4)
     stage = {"free": ["z4", "flux"], "max_steps": 30}
     twin = fit(model, data, stages=[stage])
     assert twin.values["z4"] < 0  # the twin: a minimum the solver does not leave
@@ -473,21 +481,9 @@ def test_grouped_flip_hop_negates_the_even_terms_together():
     """The twin of a wavefront with defocus and spherical aberration negates both terms
     at once. Started at the twin (−z4, −z11) of the independent generator's wavefront, a
     hop whose flip entry is the group [z4, z11] ends at the generator's (+z4, +z11) with
-    the lower χ²; each term negated alone is not the twin."""
+    the lowest χ² of the hop's tries (the single flips are tried as well)."""
     z4, z11 = 300e-9, 120e-9
-    clean = _numpy_star(**TRUE, z4=z4, z11=z11)
-    sigma = 2e-3 * clean.max()
-    data = FitData.from_array(clean + np.random.default_rng(5).normal(0, sigma, clean.shape),
-                              sigma=sigma)
-    fixed = {k: Param(TRUE[k]) for k in ("rotation", "x0", "y0", "background")}
-    model = ImageModel(obstructed_circle_pupil(0.425),
-                       fixed | {"flux": Param(TRUE["flux"], True, scale=100.0),
-                                "pixel_scale": Param(P), "obstruction": Param(0.16),
-                                "strut_width": Param(0.06),
-                                "z4": Param(-z4 * 1e9, True, (-1000, 1000)),
-                                "z11": Param(-z11 * 1e9, True, (-500, 500))},
-                       light=Light.monochromatic(LAM), zernike=[4, 11], pad=4,
-                       accuracy=3e-3)
+    model, data = _twin_case(5, z4=z4, z11=z11)
     stage = {"free": ["z4", "z11", "flux"], "max_steps": 30}
     res = fit(model, data, stages=[stage, {"hop": {"flip": ["z4", "z11", ["z4", "z11"]],
                                                    "stages": 1}}])
@@ -495,7 +491,7 @@ def test_grouped_flip_hop_negates_the_even_terms_together():
     assert [t["change"] for t in tried] == ["none", "z4 negated", "z11 negated",
                                             "z4, z11 negated"]
     twin, group = tried[0]["chi2"], tried[3]["chi2"]
-    assert group < twin and group == min(t["chi2"] for t in tried)
+    assert group < twin and group <= min(t["chi2"] for t in tried) * (1 + 1e-9)
     assert abs(res.values["z4"] - z4 * 1e9) < max(4 * res.errors["z4"], 5.0)
     assert abs(res.values["z11"] - z11 * 1e9) < max(4 * res.errors["z11"], 5.0)
     with pytest.raises(FitInputError, match="flip"):
