@@ -316,6 +316,17 @@ def test_scan_puts_the_solver_in_the_right_basin(synthetic):
         "name": "rotation", "half_range": 20, "step": 1.0}}], max_steps=20)
     assert abs(res.values["rotation"] - TRUE["rotation"]) < 1.0  # a 19 × 19 px star
     assert res.stages[0]["scan"]["name"] == "rotation"
+    # the grid is the multiples of the step: two starts inside one step choose the same
+    # point (a rough start and the main fit then take the same basin)
+    from difstar._fitting import _PixelTarget, _scan
+
+    fixed = model.with_values({"rotation": 0.0})
+    picks = [_scan(fixed, data, _PixelTarget(data),
+                   {k: p.value for k, p in fixed.params.items()} | {"rotation": start},
+                   name="rotation", half_range=20, step=1.0)["rotation"]
+             for start in (TRUE["rotation"] + 14.6, TRUE["rotation"] + 15.3)]
+    assert picks[0] == picks[1] and picks[0] == round(picks[0])
+    assert abs(picks[0] - TRUE["rotation"]) <= 1.0
 
 
 def _noisy_dng(path, clean, pattern, black, white, gain, read, *, seed):

@@ -1284,9 +1284,14 @@ def _scan(model: ImageModel, data, target, values, *, name: str, half_range,
     """``values`` with ``name`` moved to the lowest χ² of ``target`` on a grid of
     ``step`` over ± ``half_range`` about its value (inside its bounds): a coarse search
     that puts the local solver in the right basin when the objective has several (the
-    rotation, against spikes whose fine structure repeats every fraction of a degree)."""
+    rotation, against spikes whose fine structure repeats every fraction of a degree).
+    The grid is the whole multiples of ``step`` in that range, not the value plus
+    multiples: starts that differ by less than a step search the same points, so the
+    basin chosen does not depend on where inside a step the start happened to be."""
     p = model.params[name]
-    grid = values[name] + np.arange(-half_range, half_range + 0.5 * step, step)
+    v = float(values[name])
+    grid = step * np.arange(math.ceil((v - half_range) / step - 1e-9),
+                            math.floor((v + half_range) / step + 1e-9) + 1)
     if p.bounds is not None:
         grid = grid[(grid > p.bounds[0]) & (grid < p.bounds[1])]
     res = _residual_fn(model, data, target)
