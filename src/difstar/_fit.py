@@ -343,12 +343,6 @@ def make_residual_fn(model: FitModel, *, jac_batch: int = 4, mesh=None) -> Calla
 
     n_dev = 1 if mesh is None else int(mesh.size)
 
-    def columns(eye, u, args):
-        # one trace of the chain: linearised once, its linear map applied to the rows
-        # of eye (parameter directions), jac_batch at a time
-        _, column = jax.linearize(lambda v: raw(v, args), u)
-        return jax.lax.map(column, eye, batch_size=min(jac_batch, eye.shape[0]))
-
     @jax.custom_jvp
     def fn(u, args):
         return raw(u, args)
@@ -366,15 +360,19 @@ def make_residual_fn(model: FitModel, *, jac_batch: int = 4, mesh=None) -> Calla
         # device: lax.map would trace (and compile) leftover directions as a second,
         # smaller batch
         eye = jnp.eye(-(-n // (b * n_dev)) * b * n_dev, n, dtype=u.dtype)
-        if mesh is None:
+
+        def columns(eye, u, args):
+            # one trace of the chain: linearised once, its linear map applied to the
+            # rows of eye (parameter directions), b at a time
             y, column = jax.linearize(lambda v: raw(v, args), u)
-            cols = jax.lax.map(column, eye, batch_size=b)
-        else:
+            return y, jax.lax.map(column, eye, batch_size=b)
+
+        if mesh is not None:  # each device its own rows of eye; y is the same on all
             from ._batch import AXIS, P
 
-            y = raw(u, args)
-            cols = jax.shard_map(columns, mesh=mesh, in_specs=(P(AXIS), P(), P()),
-                                 out_specs=P(AXIS), check_vma=False)(eye, u, args)
+            columns = jax.shard_map(columns, mesh=mesh, in_specs=(P(AXIS), P(), P()),
+                                    out_specs=(P(), P(AXIS)), check_vma=False)
+        y, cols = columns(eye, u, args)
         dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c[:n], axes=1), cols)
         return y, dy
 
