@@ -1206,9 +1206,8 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         flips = [(q,) if isinstance(q, str) else tuple(q) for q in h.get("flip", ())]
         name = h.get("name")
         put = dict(h.get("set", {}))
-        bad = [q for q in [q for g in flips for q in g] + list(put)
-               + ([name] if name is not None else [])
-               if not isinstance(q, str) or q not in model.params]
+        named = [q for g in flips for q in g] + list(put) + ([name] if name is not None else [])
+        bad = [q for q in named if not isinstance(q, str) or q not in model.params]
         if any(not g for g in flips):
             bad.append("[] (an empty group)")
         kinds = (name is not None) + bool(flips) + bool(put)
