@@ -104,6 +104,7 @@ from ._fitting import Light as Light
 from ._fitting import Noise as Noise
 from ._fitting import Param as Param
 from ._fitting import PupilBuilder as PupilBuilder
+from ._fitting import chi2_slice as chi2_slice
 from ._fitting import fit as fit_image
 from ._fitting import iris_pupil as iris_pupil
 from ._fitting import jwst_pupil as jwst_pupil

@@ -1293,11 +1293,32 @@ def _scan(model: ImageModel, data, target, values, *, name: str, half_range,
                             math.floor((v + half_range) / step + 1e-9) + 1)
     if p.bounds is not None:
         grid = grid[(grid > p.bounds[0]) & (grid < p.bounds[1])]
-    res = _residual_fn(model, data, target)
-    base = {k: jnp.asarray(v, float) for k, v in values.items()}
-    chi2 = jax.jit(lambda x: jnp.sum(res({**base, name: x})[0] ** 2))
-    cost = np.array([float(chi2(jnp.asarray(g, float))) for g in grid])
+    cost = chi2_slice(model, data, values, name, grid, target=target)
     return {**values, name: float(grid[int(np.argmin(cost))])}
+
+
+def chi2_slice(model: ImageModel, data, values: Mapping[str, float], name: str, grid,
+               *, target=None) -> np.ndarray:
+    """χ² of ``model`` on ``data`` (a FitData or a list of captures; on all their used
+    pixels unless ``target`` says otherwise) with ``name`` at each value of ``grid`` and
+    every other parameter held at ``values``: a slice through the objective, to see
+    whether it has one minimum along that parameter or several (the rotation of a
+    pupil whose spikes the model matches only in part). One compile, then one model
+    image per grid value. Raises :class:`FitInputError` for a name the model lacks or a
+    grid that is empty or not finite."""
+    if name not in model.params:
+        raise FitInputError(f"chi2_slice: {name!r} is not a parameter of the model; known: "
+                            f"{sorted(model.params)}.")
+    g = np.asarray(grid, float).ravel()
+    if g.size == 0 or not np.all(np.isfinite(g)):
+        raise FitInputError(f"chi2_slice: grid must be a non-empty list of finite values; "
+                            f"got {grid!r}.")
+    datas = _as_list(data)
+    targets = [_PixelTarget(d) for d in datas] if target is None else _as_list(target)
+    res = _residual_fn(model, datas, targets)
+    base = {k: jnp.asarray(x, float) for k, x in values.items()}
+    chi2 = jax.jit(lambda x: jnp.sum(res({**base, name: x})[0] ** 2))
+    return np.array([float(chi2(jnp.asarray(x, float))) for x in g])
 
 
 def spike_target(data: FitData, values: Mapping[str, float], *, n_spikes=8, r_min=12.0,
