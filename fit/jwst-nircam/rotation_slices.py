@@ -126,6 +126,7 @@ def _plot(rows, grid, path):
     ax.set_xlabel("rotation of the pupil (°), every other parameter held")
     ax.set_ylabel("χ² − lowest χ² (all pixels, one σ)")
     ax.set_yscale("symlog", linthresh=100)
+    ax.set_ylim(bottom=0)
     ax.legend(fontsize=8)
     ax.set_title("χ² along the rotation at each minimum found")
     fig.tight_layout()
