@@ -11,7 +11,9 @@ robustness.json: the main fit and its rough-start refits) and writes into a new 
   of the same model with the wavefront held at zero), its rotation, Z4/Z11 and the χ² of
   all pixels along a grid of rotations with every other parameter held
   (:func:`difstar.chi2_slice`);
-- ``rotation_slices.png``: those curves, each minus the lowest χ² of all.
+- ``rotation_slices.png``: those curves, each minus the lowest χ² of all;
+- in the JSON too: σ re-estimated at each minimum, and on it the χ² of every minimum
+  and that minimum's own −2 ln L (whether the minima's order depends on the σ).
 
 All χ² share one σ: read noise and gain estimated from the main fit's residual with the
 floor of the manifest's ``noise_from_residuals`` stage, so the minima's depths compare.
@@ -97,11 +99,13 @@ def main(argv=None) -> int:
                 print(f"{label}: rotation {v['rotation']:.4f}°, χ² there "
                       f"{rows[-1]['chi2_at_own_rotation']:.1f}, slice lowest at "
                       f"{rows[-1]['slice_minimum_at']:.2f}°", flush=True)
+            cross = _cross_chi2(model, data, minima, floor)
             out = {"manifest": str(a.manifest), "result": str(res_dir),
                    "noise": {"read": noise.read, "gain": float(noise.gain),
                              "floor": noise.floor},
                    "dof_pixels": int(data.mask.sum()), "grid_deg": grid.tolist(),
-                   "slices": rows, "seconds": time.perf_counter() - t0}
+                   "slices": rows, "chi2_on_each_minimums_own_sigma": cross,
+                   "seconds": time.perf_counter() - t0}
             (tmp / "rotation_slices.json").write_text(json.dumps(out, indent=2) + "\n")
             _plot(rows, grid, tmp / "rotation_slices.png")
     except (FitInputError, OutputError) as e:
@@ -109,6 +113,28 @@ def main(argv=None) -> int:
         return 2
     print(f"written to {a.out}")
     return 0
+
+
+def _cross_chi2(model, data, minima, floor) -> list[dict]:
+    """For each minimum: σ re-estimated at it (as a fit's ``noise_from_residuals``
+    stage would), and on that σ the χ² of every minimum, and its own −2 ln L (χ² +
+    Σ ln σ²: the σ's own term, which a comparison across different σ needs). Whether
+    the minima's order holds whichever σ is used tells whether the data can tell them
+    apart under this model."""
+    from difstar._fitting import _chi2, _model_images, noise_from_residuals
+
+    out = []
+    for label, v in minima:
+        mimg = _model_images(model.with_values(v), v, [data])[0]
+        noise, d = noise_from_residuals(data, np.asarray(mimg), v["background"], **floor)
+        chi2 = {lab: _chi2(model.with_values(w), [d], w) for lab, w in minima}
+        logdet = float(np.sum(np.log(d.sigma[d.mask] ** 2)))
+        out.append({"sigma_at": label, "gain": float(noise.gain), "read": noise.read,
+                    "chi2": chi2, "minus_2_log_likelihood": chi2[label] + logdet})
+        print(f"σ at {label} (gain {noise.gain:.0f}): χ² " + ", ".join(
+            f"{lab} {c:.0f}" for lab, c in chi2.items())
+            + f"; its own −2 ln L {out[-1]['minus_2_log_likelihood']:.0f}", flush=True)
+    return out
 
 
 def _plot(rows, grid, path):
