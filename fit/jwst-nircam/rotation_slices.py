@@ -18,7 +18,7 @@ robustness.json: the main fit and its rough-start refits) and writes into a new 
 All χ² share one σ: read noise and gain estimated from the main fit's residual with the
 floor of the manifest's ``noise_from_residuals`` stage, so the minima's depths compare.
 The point: to see whether the rotation has one minimum, and how far apart and how deep
-the ones the fits end in are. About 5 minutes on 2 cores for this star.
+the ones the fits end in are. About 2 minutes on 2 cores for this star.
 """
 
 from __future__ import annotations
