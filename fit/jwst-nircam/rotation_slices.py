@@ -47,7 +47,7 @@ def main(argv=None) -> int:
 
     jax.config.update("jax_enable_x64", True)
     from difstar import chi2_slice, fit_image, load_fit_manifest
-    from difstar._fitting import FitInputError, _model_images, noise_from_residuals
+    from difstar._fitting import FitInputError
     from difstar.io._output import OutputError, output_dir
 
     lo, hi, step = a.grid
@@ -78,32 +78,31 @@ def main(argv=None) -> int:
                         command="rotation_slices") as tmp:
             t0 = time.perf_counter()
             main_v = ref["values"]
-            mimg = _model_images(model.with_values(main_v), main_v, [data])[0]
-            noise, data = noise_from_residuals(data, np.asarray(mimg), main_v["background"],
-                                               **floor)
+            noise, main_d = _sigma_at(model, data, main_v, floor)
             # the same model with the wavefront held at zero, fitted from the main values
             zs = {k: 0.0 for k in model.params if k[0] == "z" and k[1:].isdigit()}
             free = [k for k in model.free if k not in zs]
-            flat = fit_image(model.with_values({**main_v, **zs}, free=free), data,
+            flat = fit_image(model.with_values({**main_v, **zs}, free=free), main_d,
                              stages=[{"free": "all", "max_steps": 40, "rtol": 1e-6}])
             minima.append(("zero wavefront", flat.values))
+            sigmas = [(noise, main_d)] + [_sigma_at(model, data, v, floor)
+                                          for _, v in minima[1:]]
+            cross = _cross_chi2(model, minima, sigmas)
             rows = []
             for label, v in minima:
-                c = chi2_slice(model, data, v, "rotation", grid)
+                c = chi2_slice(model, main_d, v, "rotation", grid)
                 rows.append({"label": label, "rotation": v["rotation"],
                              "z4": v.get("z4"), "z11": v.get("z11"),
-                             "chi2_at_own_rotation": float(chi2_slice(
-                                 model, data, v, "rotation", [v["rotation"]])[0]),
+                             "chi2_at_own_rotation": cross[0]["chi2"][label],
                              "slice_minimum_at": float(grid[int(np.argmin(c))]),
                              "chi2": c.tolist()})
                 print(f"{label}: rotation {v['rotation']:.4f}°, χ² there "
                       f"{rows[-1]['chi2_at_own_rotation']:.1f}, slice lowest at "
                       f"{rows[-1]['slice_minimum_at']:.2f}°", flush=True)
-            cross = _cross_chi2(model, data, minima, floor)
             out = {"manifest": str(a.manifest), "result": str(res_dir),
                    "noise": {"read": noise.read, "gain": float(noise.gain),
                              "floor": noise.floor},
-                   "dof_pixels": int(data.mask.sum()), "grid_deg": grid.tolist(),
+                   "dof_pixels": int(main_d.mask.sum()), "grid_deg": grid.tolist(),
                    "slices": rows, "chi2_on_each_minimums_own_sigma": cross,
                    "seconds": time.perf_counter() - t0}
             (tmp / "rotation_slices.json").write_text(json.dumps(out, indent=2) + "\n")
@@ -115,18 +114,25 @@ def main(argv=None) -> int:
     return 0
 
 
-def _cross_chi2(model, data, minima, floor) -> list[dict]:
-    """For each minimum: σ re-estimated at it (as a fit's ``noise_from_residuals``
-    stage would), and on that σ the χ² of every minimum, and its own −2 ln L (χ² +
-    Σ ln σ²: the σ's own term, which a comparison across different σ needs). Whether
-    the minima's order holds whichever σ is used tells whether the data can tell them
-    apart under this model."""
-    from difstar._fitting import _chi2, _model_images, noise_from_residuals
+def _sigma_at(model, data, values, floor):
+    """(noise, data with σ) re-estimated from the residual at ``values``, as a fit's
+    ``noise_from_residuals`` stage would."""
+    from difstar._fitting import _model_images, noise_from_residuals
+
+    mimg = _model_images(model.with_values(values), values, [data])[0]
+    return noise_from_residuals(data, np.asarray(mimg), values["background"], **floor)
+
+
+def _cross_chi2(model, minima, sigmas) -> list[dict]:
+    """For each minimum's σ (``sigmas``, one (noise, data) per minimum, from
+    :func:`_sigma_at`): the χ² of every minimum on it, and that minimum's own −2 ln L
+    (χ² + Σ ln σ²: the σ's own term, which a comparison across different σ needs).
+    Whether the minima's order holds whichever σ is used tells whether the data can
+    tell them apart under this model."""
+    from difstar._fitting import _chi2
 
     out = []
-    for label, v in minima:
-        mimg = _model_images(model.with_values(v), v, [data])[0]
-        noise, d = noise_from_residuals(data, np.asarray(mimg), v["background"], **floor)
+    for (label, _), (noise, d) in zip(minima, sigmas):
         chi2 = {lab: _chi2(model.with_values(w), [d], w) for lab, w in minima}
         logdet = float(np.sum(np.log(d.sigma[d.mask] ** 2)))
         out.append({"sigma_at": label, "gain": float(noise.gain), "read": noise.read,
