@@ -287,6 +287,59 @@ def test_noise_from_residuals_recovers_read_noise_and_gain():
     assert np.array_equal(data.image, d2.image) and data.sigma.max() == 1.0  # not modified
 
 
+def test_noise_from_residuals_with_the_datas_own_intensity():
+    """``intensity="data"``: σ² = read² + I/gain + (floor·I)² with I the data's 3 × 3
+    mean above the background (computed here pixel by pixel), not the model's; a wrong
+    choice is refused."""
+    from difstar._fitting import noise_from_residuals
+
+    h = w = 61
+    yy, xx = np.mgrid[0:h, 0:w]
+    model = 2.0 + 400.0 * np.exp(-((yy - 30.3) ** 2 + (xx - 29.6) ** 2) / 20.0)
+    rng = np.random.default_rng(3)
+    img = model + rng.normal(0, 1, model.shape) * np.sqrt(0.64 + (model - 2.0) / 5.0)
+    mask = np.ones((h, w), bool)
+    mask[10, 12] = False
+    data = FitData.from_array(img, sigma=1.0, mask=mask)
+    noise, d2 = noise_from_residuals(data, model, 2.0, floor=0.02, faint=0.2,
+                                     intensity="data")
+    inten = np.zeros((h, w))
+    for r in range(h):
+        for c in range(w):
+            win = [img[i, j] for i in range(r - 1, r + 2) for j in range(c - 1, c + 2)
+                   if 0 <= i < h and 0 <= j < w and mask[i, j]]
+            inten[r, c] = max(np.mean(win) - 2.0, 0.0)
+
+    def want(nz):
+        return np.where(mask, np.sqrt(nz.read**2 + inten / nz.gain + (0.02 * inten) ** 2), 1.0)
+
+    np.testing.assert_allclose(d2.sigma, want(noise), rtol=1e-12)
+    # another model's residual: other read noise and gain, the same (the data's) I
+    n_b, d_b = noise_from_residuals(data, 1.05 * model, 2.0, floor=0.02, faint=0.2,
+                                    intensity="data")
+    assert (n_b.read, n_b.gain) != (noise.read, noise.gain)
+    np.testing.assert_allclose(d_b.sigma, want(n_b), rtol=1e-12)
+    with pytest.raises(FitInputError, match="intensity"):
+        noise_from_residuals(data, model, 2.0, intensity="both")
+
+
+def test_stage_set_puts_values_before_the_stage():
+    """A stage's ``set`` puts parameters at values before it solves, whatever the start:
+    started at the twin (−z4) of the independent generator's defocus, a stage that sets
+    z4 to +300 nm ends at the generator's +400 nm (without it the fit stays in the twin,
+    :func:`test_flip_hop_leaves_the_twin_of_a_defocus`). Unknown names and values that
+    are not finite numbers are refused."""
+    z4 = 400e-9
+    model, data = _twin_case(3, z4=z4)
+    stage = {"free": ["z4", "flux"], "max_steps": 30}
+    res = fit(model, data, stages=[{**stage, "set": {"z4": 300.0}}])
+    assert abs(res.values["z4"] - z4 * 1e9) < max(4 * res.errors["z4"], 5.0)
+    assert {"stage": 0, "set": {"z4": 300.0}} in res.stages
+    for bad in ({"z99": 1.0}, {"z4": float("nan")}, {"z4": "0"}, {}):
+        with pytest.raises(FitInputError, match="set"):
+            fit(model, data, stages=[{**stage, "set": bad}])
+
+
 def test_fainter_copy_has_the_fainter_stars_noise():
     from difstar._fitting import Noise, fainter_copy
 

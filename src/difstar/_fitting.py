@@ -362,7 +362,7 @@ class FitData:
 
 
 def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, faint=0.01,
-                         bins=12) -> tuple[Noise, FitData]:
+                         bins=12, intensity="model") -> tuple[Noise, FitData]:
     """Read noise and gain estimated from a fit's residual, and the data with σ from them.
 
     The residual (data − model) is high-passed — each pixel minus the mean of its four
@@ -373,7 +373,18 @@ def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, f
     var = read² + I / gain (non-negative least squares). The new σ² = read² + I/gain +
     (``floor`` · I)², with I from the model (not the data: no bias toward pixels that
     fluctuated low); ``floor`` is the model's relative mismatch. For data whose units
-    are not electrons (a gain of 1 then weights the spikes far too little)."""
+    are not electrons (a gain of 1 then weights the spikes far too little).
+
+    ``intensity="data"``: I in σ is the data's own (its 3 × 3 mean over the used pixels,
+    above ``background``) instead of the model's. σ then no longer depends on where the
+    fit is, so the χ² of different minima — a hop's alternatives, the ends of fits from
+    different starts — are measured with one yardstick; with the model's I, σ carries
+    each minimum's own image (the floor and the Poisson term), and each minimum's own σ
+    can favour another one. The 3 × 3 mean keeps the bias toward pixels that fluctuated
+    low small where the noise matters (read and Poisson); the floor dominates the core."""
+    if intensity not in ("model", "data"):
+        raise FitInputError(f"noise_from_residuals: intensity must be 'model' or 'data'; "
+                            f"got {intensity!r}.")
     from scipy.optimize import nnls
 
     m = np.asarray(model_image, float)
@@ -404,6 +415,13 @@ def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, f
     (read2, inv_gain), _ = nnls(a / np.asarray(vs)[:, None], np.ones(len(xs)))
     read = math.sqrt(max(read2, 1e-300))
     gain = 1.0 / inv_gain if inv_gain > 0 else float("inf")
+    if intensity == "data":
+        from scipy.ndimage import uniform_filter
+
+        used = data.mask.astype(float)
+        mean = (uniform_filter(np.where(data.mask, data.image, 0.0), 3, mode="constant")
+                / np.maximum(uniform_filter(used, 3, mode="constant"), 1e-12))
+        inten = np.maximum(mean - background, 0.0)
     var = read2 + inten * inv_gain + (floor * inten) ** 2
     sigma = np.where(data.mask, np.sqrt(np.maximum(var, 1e-300)), 1.0)
     return Noise(read, gain, floor), dataclasses.replace(data, sigma=sigma)
@@ -1057,6 +1075,10 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
     ``stages``: coarse to fine, each a dict with
 
     - ``free`` (names, or "all": the model's free parameters), ``fix`` (names held);
+    - ``set`` (name → value): before the stage, put those parameters at those values
+      (kept inside their bounds), whatever the start or the earlier stages gave them:
+      coarse to fine, e.g. the wavefront at zero until the geometry is found, so that
+      a rough start's wavefront cannot steer the coarse stages into another basin;
     - ``half`` (fit the central (2 half + 1)² pixels; None: the whole image) and
       ``annulus`` ([r_min, r_max] pixels: only those radii);
     - ``spikes``: fit the spikes instead of all pixels, around the directions
@@ -1124,6 +1146,12 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         if bad:
             raise FitInputError(f"fit: stage {si} frees {sorted(bad)}, which are not free "
                                 "parameters of the model.")
+        if st.get("set") is not None:
+            put = st["set"]
+            if isinstance(put, Mapping):  # a per-capture name: every capture's own
+                put = {q2: x for q, x in put.items() for q2 in model.expand([q], n_cap)}
+            values = {**values, **_put(model, put, f"fit: stage {si}: set")}
+            log.append({"stage": si, "set": dict(st["set"])})
         if st.get("noise_from_residuals") is not None:
             mimgs = _model_images(model, values, datas)
             noises = []
@@ -1276,6 +1304,25 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
                      model_image=one(mimgs), residual=one(resids),
                      data=one([d.image for d in datas]), mask=one([d.mask for d in datas]),
                      warnings=msgs, wall_time=time.perf_counter() - t0, stages=log)
+
+
+def _put(model: ImageModel, put: Mapping[str, Any], where: str) -> dict[str, float]:
+    """``put`` (name → value) checked against ``model`` (known names, finite numbers)
+    and kept inside each parameter's bounds."""
+    if not isinstance(put, Mapping) or not put:
+        raise FitInputError(f"{where}: needs a non-empty mapping of parameter names to "
+                            f"values; got {put!r}.")
+    out = {}
+    for q, x in put.items():
+        if q not in model.params:
+            raise FitInputError(f"{where}: unknown parameter {q!r}; known: "
+                                f"{sorted(model.params)}.")
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+            raise FitInputError(f"{where}: {q} must be a finite number; got {x!r}.")
+        p = model.params[q]
+        out[q] = float(x) if p.bounds is None else min(max(float(x), p.bounds[0]),
+                                                        p.bounds[1])
+    return out
 
 
 def _scan(model: ImageModel, data, target, values, *, name: str, half_range,
