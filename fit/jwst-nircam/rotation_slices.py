@@ -13,7 +13,9 @@ robustness.json: the main fit and its rough-start refits) and writes into a new 
   (:func:`difstar.chi2_slice`);
 - ``rotation_slices.png``: those curves, each minus the lowest χ² of all;
 - in the JSON too: σ re-estimated at each minimum, and on it the χ² of every minimum
-  and that minimum's own −2 ln L (whether the minima's order depends on the σ).
+  and that minimum's own −2 ln L (whether the minima's order depends on the σ), with
+  the intensity in σ that the manifest's ``noise_from_residuals`` names (the model's
+  or the data's) and again with the other one.
 
 All χ² share one σ: read noise and gain estimated from the main fit's residual with the
 floor of the manifest's ``noise_from_residuals`` stage, so the minima's depths compare.
@@ -88,6 +90,11 @@ def main(argv=None) -> int:
             sigmas = [(noise, main_d)] + [_sigma_at(model, data, v, floor)
                                           for _, v in minima[1:]]
             cross = _cross_chi2(model, minima, sigmas)
+            # the same comparison with the other choice of the intensity in σ
+            other = "model" if floor.get("intensity", "model") == "data" else "data"
+            print(f"with the {other}'s intensity in σ:", flush=True)
+            cross_other = _cross_chi2(model, minima, [
+                _sigma_at(model, data, v, {**floor, "intensity": other}) for _, v in minima])
             rows = []
             for label, v in minima:
                 c = chi2_slice(model, main_d, v, "rotation", grid)
@@ -103,7 +110,9 @@ def main(argv=None) -> int:
                    "noise": {"read": noise.read, "gain": float(noise.gain),
                              "floor": noise.floor},
                    "dof_pixels": int(main_d.mask.sum()), "grid_deg": grid.tolist(),
-                   "slices": rows, "chi2_on_each_minimums_own_sigma": cross,
+                   "slices": rows, "sigma_intensity": floor.get("intensity", "model"),
+                   "chi2_on_each_minimums_own_sigma": cross,
+                   f"chi2_on_each_minimums_own_sigma_{other}_intensity": cross_other,
                    "seconds": time.perf_counter() - t0}
             (tmp / "rotation_slices.json").write_text(json.dumps(out, indent=2) + "\n")
             _plot(rows, grid, tmp / "rotation_slices.png")
