@@ -323,6 +323,39 @@ def test_noise_from_residuals_with_the_datas_own_intensity():
         noise_from_residuals(data, model, 2.0, intensity="both")
 
 
+def test_relative_sigma_scales_with_the_star():
+    """``relative``: σ² = (relative · P)² + (floor · I)² with P the brightest I; the same
+    star k times brighter (above the same background) gets σ exactly k times larger, so
+    its weights, relative to each other, are the same; bad fractions are refused."""
+    from difstar._fitting import noise_from_residuals
+
+    h = w = 61
+    yy, xx = np.mgrid[0:h, 0:w]
+    star = 400.0 * np.exp(-((yy - 30.3) ** 2 + (xx - 29.6) ** 2) / 20.0) + 3.0 / (
+        1 + ((yy - 30) ** 2 + (xx - 30) ** 2) / 30.0)
+    noise = np.random.default_rng(4).normal(0, 1, star.shape) * np.sqrt(0.64 + star / 5.0)
+    sig = {}
+    for k in (1.0, 7.0):
+        img = 2.0 + k * (star + noise)
+        data = FitData.from_array(img, sigma=1.0)
+        nz, d = noise_from_residuals(data, 2.0 + k * star, 2.0, floor=0.03, faint=0.2,
+                                     intensity="data", relative=3e-4)
+        sig[k] = d.sigma
+        assert nz.read > 0 and nz.gain > 0  # still estimated, for the log
+        if k == 1.0:
+            from scipy.ndimage import uniform_filter
+
+            inten = np.maximum(uniform_filter(img, 3, mode="constant")
+                               / uniform_filter(np.ones_like(img), 3, mode="constant")
+                               - 2.0, 0.0)
+            want = np.sqrt((3e-4 * inten.max()) ** 2 + (0.03 * inten) ** 2)
+            np.testing.assert_allclose(d.sigma, want, rtol=1e-12)
+    np.testing.assert_allclose(sig[7.0], 7.0 * sig[1.0], rtol=1e-10)
+    for bad in (0.0, 1.5, float("nan"), True, "3e-4"):
+        with pytest.raises(FitInputError, match="relative"):
+            noise_from_residuals(data, 2.0 + star, 2.0, relative=bad)
+
+
 def test_stage_set_puts_values_before_the_stage():
     """A stage's ``set`` puts parameters at values before it solves, whatever the start:
     started at the twin (−z4) of the independent generator's defocus, a stage that sets

@@ -362,7 +362,7 @@ class FitData:
 
 
 def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, faint=0.01,
-                         bins=12, intensity="model") -> tuple[Noise, FitData]:
+                         bins=12, intensity="model", relative=None) -> tuple[Noise, FitData]:
     """Read noise and gain estimated from a fit's residual, and the data with σ from them.
 
     The residual (data − model) is high-passed — each pixel minus the mean of its four
@@ -381,10 +381,25 @@ def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, f
     different starts — are measured with one yardstick; with the model's I, σ carries
     each minimum's own image (the floor and the Poisson term), and each minimum's own σ
     can favour another one. The 3 × 3 mean keeps the bias toward pixels that fluctuated
-    low small where the noise matters (read and Poisson); the floor dominates the core."""
+    low small where the noise matters (read and Poisson); the floor dominates the core.
+
+    ``relative`` (a fraction of the peak, e.g. 3e-4): σ² = (``relative`` · P)² +
+    (``floor`` · I)², P the brightest I: weights that scale with the star, the same for
+    a bright or a faint star of the same kind. For a model whose mismatch, not the
+    noise, dominates the residual (χ²/dof well above 1): the mismatch scales with the
+    star, so these are its σ, and the compromise such a model settles at (its geometry:
+    the rotation) is then the same for every star, where the noise's own weights move it
+    with the star's brightness. Choose ``relative`` at least the noise of the faintest
+    star meant (read and Poisson over its peak). The read noise and gain are still
+    estimated and returned (for the log and for fainter copies)."""
     if intensity not in ("model", "data"):
         raise FitInputError(f"noise_from_residuals: intensity must be 'model' or 'data'; "
                             f"got {intensity!r}.")
+    if relative is not None and not (isinstance(relative, (int, float))
+                                     and not isinstance(relative, bool)
+                                     and math.isfinite(relative) and 0 < relative < 1):
+        raise FitInputError(f"noise_from_residuals: relative must be a fraction of the peak "
+                            f"(0 < relative < 1); got {relative!r}.")
     from scipy.optimize import nnls
 
     m = np.asarray(model_image, float)
@@ -423,6 +438,8 @@ def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, f
                 / np.maximum(uniform_filter(used, 3, mode="constant"), 1e-12))
         inten = np.maximum(mean - background, 0.0)
     var = read2 + inten * inv_gain + (floor * inten) ** 2
+    if relative is not None:
+        var = (relative * inten[data.mask].max()) ** 2 + (floor * inten) ** 2
     sigma = np.where(data.mask, np.sqrt(np.maximum(var, 1e-300)), 1.0)
     return Noise(read, gain, floor), dataclasses.replace(data, sigma=sigma)
 
