@@ -62,6 +62,10 @@ def test_manifest_validates_against_the_schema(bracket):
     for m in ("jwst-nircam", "spitzer-irac"):
         jsonschema.validate(json.loads((ROOT / "fit" / m / "manifest.json").read_text()),
                             schema)
+    variants = sorted((ROOT / "fit").glob("*/variants/*.json"))
+    assert variants
+    for path in variants:
+        jsonschema.validate(json.loads(path.read_text()), schema)
 
 
 @pytest.mark.slow
