@@ -7,6 +7,7 @@ manifest."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from pathlib import Path
 
@@ -354,6 +355,36 @@ def test_relative_sigma_scales_with_the_star():
     for bad in (0.0, 1.5, float("nan"), True, "3e-4"):
         with pytest.raises(FitInputError, match="relative"):
             noise_from_residuals(data, 2.0 + star, 2.0, relative=bad)
+
+
+def test_auto_position_finds_a_star_far_from_the_windows_centre(tmp_path):
+    """A manifest's ``"auto"`` x0, y0 start at the brightest pixels' centroid and
+    ``bounds_about`` puts the bounds about it: the independent generator's star 6.3 px
+    right and 5.2 px up of the centre of its window is fitted to its position, inside
+    the bounds_about window."""
+    true = dict(TRUE, x0=6.3, y0=-5.2)
+    clean = _numpy_star((31, 31), **true)
+    sigma = 2e-3 * clean.max()
+    np.save(tmp_path / "star.npy", clean + np.random.default_rng(2).normal(0, sigma,
+                                                                          clean.shape))
+    man = {"data": {"path": "star.npy", "sigma": sigma},
+           "pupil": {"builder": "circle", "radius": 0.425},
+           "light": {"wavelength": LAM}, "detector": {"pad": 4}, "accuracy": 3e-3,
+           "params": {"rotation": TRUE["rotation"], "pixel_scale": P, "obstruction": 0.16,
+                      "strut_width": 0.06,
+                      "x0": {"value": "auto", "free": True, "bounds_about": [-2, 2]},
+                      "y0": {"value": "auto", "free": True, "bounds_about": [-2, 2]},
+                      "flux": {"value": "auto", "free": True, "scale": 100.0},
+                      "background": {"value": "auto", "free": True, "scale": 1.0}}}
+    (tmp_path / "m.json").write_text(json.dumps(man))
+    model, data, opts = load_manifest(tmp_path / "m.json")
+    px, py = model.params["x0"], model.params["y0"]
+    assert abs(px.value - 6.3) < 0.5 and abs(py.value + 5.2) < 0.5
+    assert list(px.bounds) == [px.value - 2, px.value + 2]
+    res = fit(model, data, max_steps=30)
+    assert abs(res.values["x0"] - 6.3) < 0.02 and abs(res.values["y0"] + 5.2) < 0.02
+    assert abs(res.values["flux"] / TRUE["flux"] - 1) < 0.01
+    assert res.residual_rms_peak < 5e-3
 
 
 def test_stage_set_puts_values_before_the_stage():

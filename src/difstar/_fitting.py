@@ -684,7 +684,11 @@ class ImageModel:
         ang = self._bound("pixel_scale", min) * ARCSEC
         z = _PITCH / ang
         r = float(self.pupil.max_radius)
-        tilt = self.max_shift * self._bound("pixel_scale", max) * ARCSEC
+        # the widest shift of the star any value or bound allows (x0@i: each capture's)
+        shift = max([self.max_shift] + [abs(b) for k, p in self.params.items()
+                                         if k.split("@")[0] in ("x0", "y0")
+                                         for b in [p.value, *(p.bounds or ())]])
+        tilt = shift * self._bound("pixel_scale", max) * ARCSEC
         coeffs = {j: 1e-9 * max(abs(v) for v in [self.params[f"z{j}"].value,
                                                   *(self.params[f"z{j}"].bounds or ())])
                   for j in self.zernike}
@@ -1573,6 +1577,22 @@ def _load_source(src, manifest_dir):
     return src
 
 
+def _brightest_offset(data: FitData, background: float) -> tuple[float, float]:
+    """(x, y) of the star from the window's centre pixel (columns right, rows down): the
+    centroid of (data − ``background``) over the 3 × 3 pixels about the brightest used
+    pixel. The ``"auto"`` start of ``x0`` and ``y0`` for a star anywhere in its window."""
+    img = np.where(data.mask, data.image - background, -np.inf)
+    r, c = np.unravel_index(int(np.argmax(img)), img.shape)
+    h, w = img.shape
+    r0, r1, c0, c1 = max(r - 1, 0), min(r + 2, h), max(c - 1, 0), min(c + 2, w)
+    sub = np.maximum(np.where(np.isfinite(img[r0:r1, c0:c1]), img[r0:r1, c0:c1], 0.0), 0.0)
+    yy, xx = np.mgrid[r0:r1, c0:c1]
+    tot = sub.sum()
+    if not tot > 0:
+        return float(c - w // 2), float(r - h // 2)
+    return (float((sub * xx).sum() / tot - w // 2), float((sub * yy).sum() / tot - h // 2))
+
+
 def load_manifest(path):
     """(model, data, options) from an image-fit manifest (JSON; see
     data_schemas/image_fit_manifest.schema.json). ``data`` is a FitData, or a list of
@@ -1617,8 +1637,9 @@ def load_manifest(path):
     edge = np.ones(fd.image.shape, bool)
     edge[b:-b, b:-b] = False
     bg = float(np.median(fd.image[edge & fd.mask]))
+    x0, y0 = _brightest_offset(fd, bg)
     auto = {"pixel_scale": fd.pixel_scale, "background": bg,
-            "flux": float(np.sum(img - bg)) / fd.exposure}
+            "flux": float(np.sum(img - bg)) / fd.exposure, "x0": x0, "y0": y0}
     for k, spec in list(params.items()):
         if isinstance(spec, dict) and spec.get("value") in ("header", "auto"):
             if auto.get(k) is None:
@@ -1628,8 +1649,12 @@ def load_manifest(path):
             if params[k].get("bounds_relative"):
                 lo, hi = params[k].pop("bounds_relative")
                 params[k]["bounds"] = [auto[k] * lo, auto[k] * hi]
+            if params[k].get("bounds_about"):
+                lo, hi = params[k].pop("bounds_about")
+                params[k]["bounds"] = [auto[k] + lo, auto[k] + hi]
         if isinstance(spec, dict):
             params[k].pop("bounds_relative", None)
+            params[k].pop("bounds_about", None)
     model = ImageModel(builder, params, light=light, zernike=man.get("zernike", ()),
                        oversample=float(det.get("oversample", 1.0)), pad=int(det.get("pad", 8)),
                        accuracy=float(man.get("accuracy", 1e-2)),
