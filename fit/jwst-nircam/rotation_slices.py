@@ -80,21 +80,24 @@ def main(argv=None) -> int:
                         command="rotation_slices") as tmp:
             t0 = time.perf_counter()
             main_v = ref["values"]
-            noise, main_d = _sigma_at(model, data, main_v, floor)
+            main_img = _image_at(model, data, main_v)
+            noise, main_d = _sigma_at(data, main_img, main_v, floor)
             # the same model with the wavefront held at zero, fitted from the main values
             zs = {k: 0.0 for k in model.params if k[0] == "z" and k[1:].isdigit()}
             free = [k for k in model.free if k not in zs]
             flat = fit_image(model.with_values({**main_v, **zs}, free=free), main_d,
                              stages=[{"free": "all", "max_steps": 40, "rtol": 1e-6}])
             minima.append(("zero wavefront", flat.values))
-            sigmas = [(noise, main_d)] + [_sigma_at(model, data, v, floor)
-                                          for _, v in minima[1:]]
+            images = [main_img] + [_image_at(model, data, v) for _, v in minima[1:]]
+            sigmas = [(noise, main_d)] + [_sigma_at(data, im, v, floor)
+                                          for im, (_, v) in zip(images[1:], minima[1:])]
             cross = _cross_chi2(model, minima, sigmas)
             # the same comparison with the other choice of the intensity in σ
             other = "model" if floor.get("intensity", "model") == "data" else "data"
             print(f"with the {other}'s intensity in σ:", flush=True)
             cross_other = _cross_chi2(model, minima, [
-                _sigma_at(model, data, v, {**floor, "intensity": other}) for _, v in minima])
+                _sigma_at(data, im, v, {**floor, "intensity": other})
+                for im, (_, v) in zip(images, minima)])
             rows = []
             for label, v in minima:
                 c = chi2_slice(model, main_d, v, "rotation", grid)
@@ -123,13 +126,19 @@ def main(argv=None) -> int:
     return 0
 
 
-def _sigma_at(model, data, values, floor):
-    """(noise, data with σ) re-estimated from the residual at ``values``, as a fit's
-    ``noise_from_residuals`` stage would."""
-    from difstar._fitting import _model_images, noise_from_residuals
+def _image_at(model, data, values):
+    """The model image at ``values`` (one per minimum, shared by both σ estimates)."""
+    from difstar._fitting import _model_images
 
-    mimg = _model_images(model.with_values(values), values, [data])[0]
-    return noise_from_residuals(data, np.asarray(mimg), values["background"], **floor)
+    return np.asarray(_model_images(model.with_values(values), values, [data])[0])
+
+
+def _sigma_at(data, model_image, values, floor):
+    """(noise, data with σ) re-estimated from the residual of ``model_image`` (the model
+    at ``values``), as a fit's ``noise_from_residuals`` stage would."""
+    from difstar._fitting import noise_from_residuals
+
+    return noise_from_residuals(data, model_image, values["background"], **floor)
 
 
 def _cross_chi2(model, minima, sigmas) -> list[dict]:

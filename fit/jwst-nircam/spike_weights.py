@@ -39,10 +39,8 @@ def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from scipy.ndimage import uniform_filter
-
     from difstar import fit_image, load_fit_manifest
-    from difstar._fitting import FitInputError
+    from difstar._fitting import FitInputError, data_intensity
 
     try:
         ref = json.loads((Path(a.result) / "result.json").read_text())
@@ -53,10 +51,7 @@ def main(argv=None) -> int:
         return 2
     floor = float((spike.pop("noise_from_residuals", None) or {}).get("floor", 0.03))
     v, noise = ref["values"], ref["noise"]
-    used = data.mask.astype(float)
-    mean = (uniform_filter(np.where(data.mask, data.image, 0.0), 3, mode="constant")
-            / np.maximum(uniform_filter(used, 3, mode="constant"), 1e-12))
-    inten = np.maximum(mean - v["background"], 0.0)
+    inten = data_intensity(data, v["background"])
     rows = [(f"noise of a star {f:g} × fainter" if f != 1 else "the star's own noise",
              (noise["read"] * f) ** 2 + inten * f / noise["gain"]) for f in a.factors]
     rows += [(f"relative {r:g} of the peak", (r * inten[data.mask].max()) ** 2)

@@ -361,6 +361,18 @@ class FitData:
                                    sigma=self.sigma[r0:r1, c0:c1], mask=self.mask[r0:r1, c0:c1])
 
 
+def data_intensity(data: FitData, background) -> np.ndarray:
+    """The data's own intensity above ``background``: each pixel's 3 × 3 mean over the
+    used pixels (masked ones left out), clipped at 0. The I of σ with
+    ``noise_from_residuals(..., intensity="data")``."""
+    from scipy.ndimage import uniform_filter
+
+    used = data.mask.astype(float)
+    mean = (uniform_filter(np.where(data.mask, data.image, 0.0), 3, mode="constant")
+            / np.maximum(uniform_filter(used, 3, mode="constant"), 1e-12))
+    return np.maximum(mean - background, 0.0)
+
+
 def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, faint=0.01,
                          bins=12, intensity="model", relative=None) -> tuple[Noise, FitData]:
     """Read noise and gain estimated from a fit's residual, and the data with σ from them.
@@ -431,14 +443,10 @@ def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, f
     read = math.sqrt(max(read2, 1e-300))
     gain = 1.0 / inv_gain if inv_gain > 0 else float("inf")
     if intensity == "data":
-        from scipy.ndimage import uniform_filter
-
-        used = data.mask.astype(float)
-        mean = (uniform_filter(np.where(data.mask, data.image, 0.0), 3, mode="constant")
-                / np.maximum(uniform_filter(used, 3, mode="constant"), 1e-12))
-        inten = np.maximum(mean - background, 0.0)
-    var = read2 + inten * inv_gain + (floor * inten) ** 2
-    if relative is not None:
+        inten = data_intensity(data, background)
+    if relative is None:
+        var = read2 + inten * inv_gain + (floor * inten) ** 2
+    else:
         var = (relative * inten[data.mask].max()) ** 2 + (floor * inten) ** 2
     sigma = np.where(data.mask, np.sqrt(np.maximum(var, 1e-300)), 1.0)
     return Noise(read, gain, floor), dataclasses.replace(data, sigma=sigma)
@@ -1275,13 +1283,14 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         def chi2_of(v):
             return _chi2(model.with_values(v), ref, v)
 
+        put_at = _put(model, put, f"fit: stage {si}: hop set") if put else {}
         best = (chi2_of(values), values, datas, (status, ok, steps), dict(spike_errors))
         tried = [{"change": "none", "chi2": best[0]}]
         moves = ([(f"{name} {float(off):+g}", {name: values[name] + float(off)})
                   for off in h.get("offsets", ()) if name is not None]
                  + [(", ".join(g) + " negated", {q: -values[q] for q in g}) for g in flips]
-                 + ([("set " + ", ".join(f"{q}={x:g}" for q, x in put.items()),
-                      {q: float(x) for q, x in put.items()})] if put else []))
+                 + ([("set " + ", ".join(f"{q}={x:g}" for q, x in put.items()), put_at)]
+                    if put else []))
         for label, change in moves:
             v = dict(values)
             for q, x in change.items():
