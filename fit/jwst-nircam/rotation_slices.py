@@ -48,8 +48,7 @@ def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from difstar import chi2_slice, fit_image, load_fit_manifest
-    from difstar._fitting import FitInputError
+    from difstar import FitInputError, chi2_slice, fit_image, load_fit_manifest
     from difstar.io._output import OutputError, output_dir
 
     lo, hi, step = a.grid
@@ -128,15 +127,15 @@ def main(argv=None) -> int:
 
 def _image_at(model, data, values):
     """The model image at ``values`` (one per minimum, shared by both σ estimates)."""
-    from difstar._fitting import _model_images
+    from difstar import model_images
 
-    return np.asarray(_model_images(model.with_values(values), values, [data])[0])
+    return model_images(model, values, data)[0]
 
 
 def _sigma_at(data, model_image, values, floor):
     """(noise, data with σ) re-estimated from the residual of ``model_image`` (the model
     at ``values``), as a fit's ``noise_from_residuals`` stage would."""
-    from difstar._fitting import noise_from_residuals
+    from difstar import noise_from_residuals
 
     return noise_from_residuals(data, model_image, values["background"], **floor)
 
@@ -147,11 +146,11 @@ def _cross_chi2(model, minima, sigmas) -> list[dict]:
     (χ² + Σ ln σ²: the σ's own term, which a comparison across different σ needs).
     Whether the minima's order holds whichever σ is used tells whether the data can
     tell them apart under this model."""
-    from difstar._fitting import _chi2
+    from difstar import chi2_at
 
     out = []
     for (label, _), (noise, d) in zip(minima, sigmas):
-        chi2 = {lab: _chi2(model.with_values(w), [d], w) for lab, w in minima}
+        chi2 = {lab: chi2_at(model, d, w) for lab, w in minima}
         logdet = float(np.sum(np.log(d.sigma[d.mask] ** 2)))
         out.append({"sigma_at": label, "gain": float(noise.gain), "read": noise.read,
                     "chi2": chi2, "minus_2_log_likelihood": chi2[label] + logdet})

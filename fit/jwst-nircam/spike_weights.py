@@ -39,8 +39,7 @@ def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from difstar import fit_image, load_fit_manifest
-    from difstar._fitting import FitInputError, data_intensity
+    from difstar import FitInputError, data_intensity, fit_image, load_fit_manifest
 
     try:
         ref = json.loads((Path(a.result) / "result.json").read_text())

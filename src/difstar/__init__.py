@@ -104,11 +104,16 @@ from ._fitting import Light as Light
 from ._fitting import Noise as Noise
 from ._fitting import Param as Param
 from ._fitting import PupilBuilder as PupilBuilder
+from ._fitting import chi2_at as chi2_at
 from ._fitting import chi2_slice as chi2_slice
+from ._fitting import data_intensity as data_intensity
+from ._fitting import fainter_copy as fainter_copy
 from ._fitting import fit as fit_image
 from ._fitting import iris_pupil as iris_pupil
 from ._fitting import jwst_pupil as jwst_pupil
 from ._fitting import load_manifest as load_fit_manifest
+from ._fitting import model_images as model_images
+from ._fitting import noise_from_residuals as noise_from_residuals
 from ._fitting import obstructed_circle_pupil as obstructed_circle_pupil
 from ._fitting import spike_angles as spike_angles
 from ._geometry import Geometry as Geometry

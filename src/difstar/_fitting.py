@@ -975,11 +975,14 @@ def _residual_fn(model: ImageModel, data, target):
     return res
 
 
-def _model_images(model: ImageModel, values: Mapping[str, float], datas) -> list:
-    """The model image of each of ``datas``'s windows at ``values`` (not jitted: for the
-    one-off images a stage needs before it solves)."""
+def model_images(model: ImageModel, values: Mapping[str, float], data) -> list:
+    """The model image of each capture's window at ``values`` (a fit's values, or a
+    result.json's), as a list of arrays; ``data``: a :class:`FitData` or a list of them.
+    Not jitted: for one-off images (a stage's σ or spike directions, a figure)."""
+    datas = _as_list(data)
     v = {k: jnp.asarray(x, float) for k, x in values.items()}
-    return _residual_fn(model.with_values(values), datas, [_PixelTarget(d) for d in datas])(v)[1]
+    return [np.asarray(m) for m in _residual_fn(model.with_values(values), datas,
+                                                [_PixelTarget(d) for d in datas])(v)[1]]
 
 
 def values_of_capture(values: Mapping[str, Any], i: int) -> dict:
@@ -1134,7 +1137,14 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
       centrally symmetric pupil, so an almost symmetric one has a near-twin minimum);
       ``{"set": {"z4": 0, "z5": 0}, "stages": 3}`` puts the named parameters at those
       values, all at once (a second start for the wavefront from zero: a rough start's
-      wavefront can settle in a neighbouring minimum).
+      wavefront can settle in a neighbouring minimum);
+    - a stage that is only ``repeat`` (``{"until": {"rotation": 0.002}, "stages": 2,
+      "max_rounds": 6}``): re-run the ``stages`` solving stages before it, round after
+      round (σ as it is), until each parameter named in ``until`` moves by less than its
+      tolerance over a round: the fixed point of stages that fit different parameters
+      in turn (the rotation on the spikes, then the rest on all pixels), which a single
+      pass leaves wherever its start put it along a long, flat valley. Not settled after
+      ``max_rounds``: a warning in the result.
 
     Each stage starts from the last one's values. Standard errors are computed at the
     end for every free parameter on the pixels; those of parameters last fitted in a
@@ -1162,6 +1172,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
     log = []
     last_stage = {}
     spike_errors = {}
+    notes = []  # the procedure's own warnings (e.g. a repeat that did not settle)
     status, ok, steps = "converged", True, 0
 
     def run_stage(si, st, values, datas):
@@ -1182,7 +1193,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
             values = {**values, **_put(model, put, f"fit: stage {si}: set")}
             log.append({"stage": si, "set": dict(st["set"])})
         if st.get("noise_from_residuals") is not None:
-            mimgs = _model_images(model, values, datas)
+            mimgs = model_images(model, values, datas)
             noises = []
             for i, mi in enumerate(mimgs):
                 bg = model.capture_values(values, i)["background"]
@@ -1201,7 +1212,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         if st.get("spikes") is not None:
             mimgs = [None] * len(ds)
             if st["spikes"].get("directions") == "model":
-                mimgs = _model_images(model, values, ds)
+                mimgs = model_images(model, values, ds)
             targets = [spike_target(d, model.capture_values(values, i), model_image=mi,
                                     **dict(st["spikes"]))
                        for i, (d, mi) in enumerate(zip(ds, mimgs))]
@@ -1226,7 +1237,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
             ts = time.perf_counter()
             vals, status, ok, n = _one_fit(m, ds, targets, max_steps=int(
                 st.get("max_steps", max_steps)), rtol=float(st.get("rtol", rtol)), atol=atol)
-            chi2 = _chi2(m, ds, vals, targets)
+            chi2 = chi2_at(m, ds, vals, targets)
             entry = {"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
                      "kind": kind, "status": status, "steps": n,
                      "seconds": time.perf_counter() - ts}
@@ -1248,6 +1259,55 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         _release_compiled()
         return values, status, ok, steps, datas
 
+    def solving_before(si):
+        """The solving stages before stage ``si`` (hop and repeat stages passed over)."""
+        return [sj for sj in range(si)
+                if stages[sj].get("hop") is None and stages[sj].get("repeat") is None]
+
+    def rerun(which, v, datas):
+        """Re-run the stages ``which`` from ``v`` with σ as it is (their own
+        noise_from_residuals left out, so that what is compared has one yardstick):
+        (values, (status, ok, steps), datas)."""
+        ds = list(datas)
+        st_j, ok_j, n_j = status, ok, steps
+        for sj in which:
+            again = {q: x for q, x in stages[sj].items() if q != "noise_from_residuals"}
+            v, st_j, ok_j, n_j, ds = run_stage(sj, again, v, ds)
+        return v, (st_j, ok_j, n_j), ds
+
+    def repeat(si, st, values, datas):
+        """Re-run the ``stages`` solving stages before this one, round after round, until
+        every parameter named in ``until`` moves by less than its tolerance over a round
+        (or ``max_rounds``): the fixed point of stages that fit different parameters in
+        turn (e.g. the rotation on the spikes, then the rest on all pixels), which one
+        pass leaves wherever its start put it in a long, flat valley."""
+        nonlocal status, ok, steps
+        r = dict(st["repeat"])
+        k, until, max_rounds = r.get("stages", 2), r["until"], r.get("max_rounds", 6)
+        solving = solving_before(si)
+        names = {q2: tol for q, tol in until.items() for q2 in model.expand([q], n_cap)}
+        rounds = []
+        settled = False
+        for _ in range(max_rounds):
+            before = {q: values[q] for q in names}
+            values, (status, ok, steps), datas = rerun(solving[-k:], values, datas)
+            moved = {q: values[q] - before[q] for q in names}
+            rounds.append({"values": {q: values[q] for q in names}, "moved": moved,
+                           "chi2": chi2_at(model, datas, values)})
+            if verbose:
+                print(f"stage {si}: repeat round {len(rounds)}: " + ", ".join(
+                    f"{q} {values[q]:.6g} (moved {moved[q]:+.3g})" for q in names)
+                    + f", chi2 {rounds[-1]['chi2']:.6g}", flush=True)
+            if all(abs(moved[q]) < names[q] for q in names):
+                settled = True
+                break
+        log.append({"stage": si, "repeat": r, "rounds": rounds, "settled": settled})
+        if not settled:
+            notes.append(f"repeat (stage {si}): {', '.join(names)} still moved by more than "
+                         f"the tolerance after {max_rounds} rounds: raise max_rounds or "
+                         "the tolerance.")
+        return values, datas
+
     def hop(si, st, values, datas):
         """Re-run the ``stages`` solving stages before this one (hop stages are passed
         over) from ``values`` changed in each way the hop names: ``name`` moved by each
@@ -1258,7 +1318,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         nonlocal status, ok, steps, spike_errors
         h = dict(st["hop"])
         k = int(h.get("stages", 2))
-        solving = [sj for sj in range(si) if stages[sj].get("hop") is None]
+        solving = solving_before(si)
         # each entry of flip: one name, or a list of names negated together (the twin)
         flips = [(q,) if isinstance(q, str) else tuple(q) for q in h.get("flip", ())]
         name = h.get("name")
@@ -1281,7 +1341,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         ref = list(datas)
 
         def chi2_of(v):
-            return _chi2(model.with_values(v), ref, v)
+            return chi2_at(model.with_values(v), ref, v)
 
         put_at = _put(model, put, f"fit: stage {si}: hop set") if put else {}
         best = (chi2_of(values), values, datas, (status, ok, steps), dict(spike_errors))
@@ -1296,10 +1356,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
             for q, x in change.items():
                 p = model.params[q]
                 v[q] = x if p.bounds is None else min(max(x, p.bounds[0]), p.bounds[1])
-            ds = list(ref)
-            for sj in solving[-k:]:  # with σ as before the hop: comparable χ²
-                again = {q: x for q, x in stages[sj].items() if q != "noise_from_residuals"}
-                v, st_j, ok_j, n_j, ds = run_stage(sj, again, v, ds)
+            v, (st_j, ok_j, n_j), ds = rerun(solving[-k:], v, ref)
             c = chi2_of(v)
             tried.append({"change": label, "chi2": c,
                           "ends_at": {q: v[q] for q in change}})
@@ -1313,9 +1370,15 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         _, values, datas, (status, ok, steps), spike_errors = best
         return values, datas
 
+    for si, st in enumerate(stages):  # a repeat's mistakes are found before any fitting
+        if st.get("repeat") is not None:
+            _check_repeat(model, si, st["repeat"], len(solving_before(si)))
     for si, st in enumerate(stages):
         if st.get("hop") is not None:
             values, datas = hop(si, st, values, datas)
+            continue
+        if st.get("repeat") is not None:
+            values, datas = repeat(si, st, values, datas)
             continue
         values, status, ok, steps, datas = run_stage(si, st, values, datas)
 
@@ -1333,7 +1396,35 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
                      dof=dof, status=status, converged=ok, steps=steps,
                      model_image=one(mimgs), residual=one(resids),
                      data=one([d.image for d in datas]), mask=one([d.mask for d in datas]),
-                     warnings=msgs, wall_time=time.perf_counter() - t0, stages=log)
+                     warnings=notes + msgs, wall_time=time.perf_counter() - t0, stages=log)
+
+
+def _check_repeat(model: ImageModel, si: int, r: Any, n_solving: int) -> None:
+    """Refuse a ``repeat`` stage that cannot be right, naming what to fix (a per-capture
+    name stands for every capture's own)."""
+    given, r = r, (r if isinstance(r, Mapping) else {})
+    k, until, max_rounds = r.get("stages", 2), r.get("until"), r.get("max_rounds", 6)
+    bad = [] if isinstance(until, Mapping) and until else ["until (missing or empty)"]
+    if isinstance(until, Mapping):
+        bad += [f"until.{q}" for q, tol in until.items()
+                if q not in model.params and q not in model.per_capture
+                or isinstance(tol, bool)
+                or not isinstance(tol, (int, float)) or not math.isfinite(tol) or tol <= 0]
+    bad += sorted(set(r) - {"stages", "until", "max_rounds"})
+
+    def count(x, lo, hi):
+        return not isinstance(x, bool) and isinstance(x, int) and lo <= x <= hi
+
+    if not count(k, 1, n_solving):
+        bad.append(f"stages={k!r}")
+    if not count(max_rounds, 1, 1000):
+        bad.append(f"max_rounds={max_rounds!r}")
+    if bad:
+        raise FitInputError(f"fit: stage {si}: repeat needs 'until' (the model's parameters → "
+                            "tolerances > 0, e.g. {'until': {'rotation': 0.002}}), 1 <= "
+                            f"stages <= {n_solving} (the solving stages before it) and "
+                            f"1 <= max_rounds <= 1000; got {given!r} "
+                            f"(bad: {', '.join(bad)}).")
 
 
 def _put(model: ImageModel, put: Mapping[str, Any], where: str) -> dict[str, float]:
@@ -1456,7 +1547,11 @@ def perturbed_starts(model: ImageModel, n, *, rel=PERTURB, seed=0) -> list[dict[
     return out
 
 
-def _chi2(model, data, values, target=None):
+def chi2_at(model: ImageModel, data, values: Mapping[str, float], target=None) -> float:
+    """χ² = Σ ((data − model) / σ)² over the used pixels of ``data`` (a :class:`FitData`
+    or a list of them) at ``values``; ``model`` as the fit had it (its own values are
+    replaced by ``values``). ``target``: a spike stage's target instead of the pixels."""
+    model = model.with_values(values)
     if target is None:
         target = [_PixelTarget(d) for d in _as_list(data)]
     v = {k: jnp.asarray(x, float) for k, x in values.items()}
