@@ -15,26 +15,17 @@ the noise, that the rotation follows. Writes nothing. About 1 minute per row on 
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
 from pathlib import Path
 
 import numpy as np
+from _weights_args import parse
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("manifest")
-    ap.add_argument("result", help="a difstar fit-image --out folder")
-    ap.add_argument("--factors", nargs="+", type=float, default=[1.0, 4.0, 16.0])
-    ap.add_argument("--relative", nargs="*", type=float, default=[])
-    a = ap.parse_args(argv)
-    if not all(np.isfinite(f) and f >= 1 for f in a.factors) or not all(
-            np.isfinite(r) and 0 < r < 1 for r in a.relative):
-        print("--factors must be >= 1 and --relative in (0, 1).", file=sys.stderr)
-        return 2
+    a = parse(__doc__, argv, factors=[1.0, 4.0, 16.0], relative=[])
 
     import jax
 
