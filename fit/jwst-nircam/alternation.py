@@ -70,7 +70,7 @@ def main(argv=None) -> int:
           f"{si + 1}, then repeated until the rotation moves < 0.002°")
     print("| weights | star | rotation (°) | ± | rounds |\n|---|---|---|---|---|")
     weightings = [("own", None)] + [(f"relative {r:g}", r) for r in a.relative]
-    for wi, (label, r) in enumerate(weightings):
+    for label, r in weightings:
         for fi, f in enumerate(a.factors):
             d = data
             if f > 1:

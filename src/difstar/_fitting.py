@@ -1282,8 +1282,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         turn (e.g. the rotation on the spikes, then the rest on all pixels), which one
         pass leaves wherever its start put it in a long, flat valley."""
         nonlocal status, ok, steps
-        r = dict(st["repeat"])
-        k, until, max_rounds = r.get("stages", 2), r["until"], r.get("max_rounds", 6)
+        k, until, max_rounds = repeats[si]
         solving = solving_before(si)
         names = {q2: tol for q, tol in until.items() for q2 in model.expand([q], n_cap)}
         rounds = []
@@ -1301,7 +1300,8 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
             if all(abs(moved[q]) < names[q] for q in names):
                 settled = True
                 break
-        log.append({"stage": si, "repeat": r, "rounds": rounds, "settled": settled})
+        log.append({"stage": si, "repeat": dict(st["repeat"]), "rounds": rounds,
+                    "settled": settled})
         if not settled:
             notes.append(f"repeat (stage {si}): {', '.join(names)} still moved by more than "
                          f"the tolerance after {max_rounds} rounds: raise max_rounds or "
@@ -1341,7 +1341,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         ref = list(datas)
 
         def chi2_of(v):
-            return chi2_at(model.with_values(v), ref, v)
+            return chi2_at(model, ref, v)
 
         put_at = _put(model, put, f"fit: stage {si}: hop set") if put else {}
         best = (chi2_of(values), values, datas, (status, ok, steps), dict(spike_errors))
@@ -1370,9 +1370,9 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         _, values, datas, (status, ok, steps), spike_errors = best
         return values, datas
 
-    for si, st in enumerate(stages):  # a repeat's mistakes are found before any fitting
-        if st.get("repeat") is not None:
-            _check_repeat(model, si, st["repeat"], len(solving_before(si)))
+    # a repeat's mistakes are found before any fitting: (stages, until, max_rounds)
+    repeats = {si: _check_repeat(model, si, st["repeat"], len(solving_before(si)))
+               for si, st in enumerate(stages) if st.get("repeat") is not None}
     for si, st in enumerate(stages):
         if st.get("hop") is not None:
             values, datas = hop(si, st, values, datas)
@@ -1399,9 +1399,10 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
                      warnings=notes + msgs, wall_time=time.perf_counter() - t0, stages=log)
 
 
-def _check_repeat(model: ImageModel, si: int, r: Any, n_solving: int) -> None:
-    """Refuse a ``repeat`` stage that cannot be right, naming what to fix (a per-capture
-    name stands for every capture's own)."""
+def _check_repeat(model: ImageModel, si: int, r: Any, n_solving: int) -> tuple:
+    """A ``repeat`` stage's (stages, until, max_rounds), its defaults filled in; refuses
+    one that cannot be right, naming what to fix (a per-capture name stands for every
+    capture's own)."""
     given, r = r, (r if isinstance(r, Mapping) else {})
     k, until, max_rounds = r.get("stages", 2), r.get("until"), r.get("max_rounds", 6)
     bad = [] if isinstance(until, Mapping) and until else ["until (missing or empty)"]
@@ -1425,6 +1426,7 @@ def _check_repeat(model: ImageModel, si: int, r: Any, n_solving: int) -> None:
                             f"stages <= {n_solving} (the solving stages before it) and "
                             f"1 <= max_rounds <= 1000; got {given!r} "
                             f"(bad: {', '.join(bad)}).")
+    return k, dict(until), max_rounds
 
 
 def _put(model: ImageModel, put: Mapping[str, Any], where: str) -> dict[str, float]:
