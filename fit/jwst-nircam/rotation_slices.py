@@ -17,8 +17,9 @@ robustness.json: the main fit and its rough-start refits) and writes into a new 
   the intensity in σ that the manifest's ``noise_from_residuals`` names (the model's
   or the data's) and again with the other one.
 
-All χ² share one σ: read noise and gain estimated from the main fit's residual with the
-floor of the manifest's ``noise_from_residuals`` stage, so the minima's depths compare.
+All χ² share one σ: estimated from the main fit's residual with the options (floor,
+intensity, relative weights) of the manifest's last ``noise_from_residuals`` stage, the σ
+the campaign's final stages are fitted on, so the minima's depths compare.
 The point: to see whether the rotation has one minimum, and how far apart and how deep
 the ones the fits end in are. About 2 minutes on 2 cores for this star.
 """
@@ -71,7 +72,8 @@ def main(argv=None) -> int:
     if rob.exists():
         for i, s in enumerate(json.loads(rob.read_text())["starts"]):
             minima.append((f"rough start {i}", s["values"]))
-    floor = next((dict(st["noise_from_residuals"]) for st in opts["stages"] or ()
+    # σ as the manifest's last noise_from_residuals stage makes it: the σ its end is fitted on
+    floor = next((dict(st["noise_from_residuals"]) for st in reversed(opts["stages"] or ())
                   if st.get("noise_from_residuals") is not None), {"floor": 0.0})
     try:
         with output_dir(a.out, overwrite=a.overwrite, inputs=[a.manifest],
@@ -113,6 +115,7 @@ def main(argv=None) -> int:
                              "floor": noise.floor},
                    "dof_pixels": int(main_d.mask.sum()), "grid_deg": grid.tolist(),
                    "slices": rows, "sigma_intensity": floor.get("intensity", "model"),
+                   "sigma_relative": floor.get("relative"),
                    "chi2_on_each_minimums_own_sigma": cross,
                    f"chi2_on_each_minimums_own_sigma_{other}_intensity": cross_other,
                    "seconds": time.perf_counter() - t0}
