@@ -73,8 +73,9 @@ def main(argv=None) -> int:
         for i, s in enumerate(json.loads(rob.read_text())["starts"]):
             minima.append((f"rough start {i}", s["values"]))
     # σ as the manifest's last noise_from_residuals stage makes it: the σ its end is fitted on
-    floor = next((dict(st["noise_from_residuals"]) for st in reversed(opts["stages"] or ())
-                  if st.get("noise_from_residuals") is not None), {"floor": 0.0})
+    sigma_opts = next((dict(st["noise_from_residuals"])
+                       for st in reversed(opts["stages"] or ())
+                       if st.get("noise_from_residuals") is not None), {"floor": 0.0})
     try:
         with output_dir(a.out, overwrite=a.overwrite, inputs=[a.manifest],
                         will_write=["rotation_slices.json", "rotation_slices.png"],
@@ -82,7 +83,7 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             main_v = ref["values"]
             main_img = _image_at(model, data, main_v)
-            noise, main_d = _sigma_at(data, main_img, main_v, floor)
+            noise, main_d = _sigma_at(data, main_img, main_v, sigma_opts)
             # the same model with the wavefront held at zero, fitted from the main values
             zs = {k: 0.0 for k in model.params if k[0] == "z" and k[1:].isdigit()}
             free = [k for k in model.free if k not in zs]
@@ -90,14 +91,14 @@ def main(argv=None) -> int:
                              stages=[{"free": "all", "max_steps": 40, "rtol": 1e-6}])
             minima.append(("zero wavefront", flat.values))
             images = [main_img] + [_image_at(model, data, v) for _, v in minima[1:]]
-            sigmas = [(noise, main_d)] + [_sigma_at(data, im, v, floor)
+            sigmas = [(noise, main_d)] + [_sigma_at(data, im, v, sigma_opts)
                                           for im, (_, v) in zip(images[1:], minima[1:])]
             cross = _cross_chi2(model, minima, sigmas)
             # the same comparison with the other choice of the intensity in σ
-            other = "model" if floor.get("intensity", "model") == "data" else "data"
+            other = "model" if sigma_opts.get("intensity", "model") == "data" else "data"
             print(f"with the {other}'s intensity in σ:", flush=True)
             cross_other = _cross_chi2(model, minima, [
-                _sigma_at(data, im, v, {**floor, "intensity": other})
+                _sigma_at(data, im, v, {**sigma_opts, "intensity": other})
                 for im, (_, v) in zip(images, minima)])
             rows = []
             for label, v in minima:
@@ -114,8 +115,8 @@ def main(argv=None) -> int:
                    "noise": {"read": noise.read, "gain": float(noise.gain),
                              "floor": noise.floor},
                    "dof_pixels": int(main_d.mask.sum()), "grid_deg": grid.tolist(),
-                   "slices": rows, "sigma_intensity": floor.get("intensity", "model"),
-                   "sigma_relative": floor.get("relative"),
+                   "slices": rows, "sigma_intensity": sigma_opts.get("intensity", "model"),
+                   "sigma_relative": sigma_opts.get("relative"),
                    "chi2_on_each_minimums_own_sigma": cross,
                    f"chi2_on_each_minimums_own_sigma_{other}_intensity": cross_other,
                    "seconds": time.perf_counter() - t0}
@@ -135,12 +136,12 @@ def _image_at(model, data, values):
     return model_images(model, values, data)[0]
 
 
-def _sigma_at(data, model_image, values, floor):
+def _sigma_at(data, model_image, values, sigma_opts):
     """(noise, data with σ) re-estimated from the residual of ``model_image`` (the model
     at ``values``), as a fit's ``noise_from_residuals`` stage would."""
     from difstar import noise_from_residuals
 
-    return noise_from_residuals(data, model_image, values["background"], **floor)
+    return noise_from_residuals(data, model_image, values["background"], **sigma_opts)
 
 
 def _cross_chi2(model, minima, sigmas) -> list[dict]:
