@@ -127,3 +127,55 @@ def test_rough_starts_about_the_result(bracket):
         assert abs(v - ref) <= 0.2 * abs(ref) + 1e-12, k
     assert row["max_deviation"] < 1.0
     assert "value in the main fit" in (out / "robustness.md").read_text()
+
+
+@pytest.mark.slow
+def test_fainter_copies_end_to_end(tmp_path):
+    """--fainter 4 on one capture with noise in electrons (gain 50): the main fit and the
+    copy 4 times fainter both recover the generator's centre, and the copy its flux / 4;
+    fit_fainter_copy (what fit/jwst-nircam/faint_copy.py runs) fits the same copy."""
+    from difstar._fit_image_cli import fit_fainter_copy
+
+    lin = _numpy_star((31, 31), **dict(TRUE, background=0.0))
+    gain, read = 50.0, 0.05
+    rng = np.random.default_rng(7)
+    img = lin + TRUE["background"]
+    img = img + rng.normal(0, 1, img.shape) * np.sqrt(read**2 + lin / gain)
+    np.save(tmp_path / "star.npy", img)
+    man = {
+        "name": "one star",
+        "data": {"path": "star.npy", "noise": {"read": read, "gain": gain}},
+        "pupil": {"builder": "circle", "radius": 0.425},
+        "light": {"wavelength": LAM},
+        "detector": {"pad": 4},
+        "accuracy": 3e-3,
+        "params": {
+            "rotation": TRUE["rotation"], "pixel_scale": P, "obstruction": 0.16,
+            "strut_width": 0.06,
+            "x0": {"value": 0.0, "free": True, "bounds": [-2, 2]},
+            "y0": {"value": 0.0, "free": True, "bounds": [-2, 2]},
+            "flux": {"value": 900.0, "free": True, "scale": 100.0},
+            "background": {"value": 0.0, "free": True, "scale": 1.0},
+        },
+        "stages": [{"free": "all", "max_steps": 30},
+                   {"free": "all", "max_steps": 30, "noise_from_residuals": {"floor": 0.0}}],
+    }
+    path = tmp_path / "manifest.json"
+    path.write_text(json.dumps(man))
+    out = tmp_path / "out"
+    assert main([str(path), "--out", str(out), "--quiet", "--fainter", "4", "--seed", "5"]) == 0
+    res = json.loads((out / "result.json").read_text())
+    study = json.loads((out / "fainter.json").read_text())
+    assert abs(res["values"]["x0"] - TRUE["x0"]) < 0.02
+    # the gain, estimated from the faint pixels' residual, scatters from 40 to 99 (10th to
+    # 90th percentile over 20 noise draws of this image, with the true model)
+    assert 0.4 < res["noise"]["gain"] / gain < 2.5
+    (copy,) = study["copies"]
+    assert copy["factor"] == 4.0 and study["seed"] == 5
+    assert "(fixed)" in (out / "fainter.md").read_text()  # the rotation is held
+    assert abs(copy["values"]["x0"] - TRUE["x0"]) < 0.05
+    assert abs(copy["values"]["y0"] - TRUE["y0"]) < 0.05
+    assert abs(copy["values"]["flux"] / (TRUE["flux"] / 4) - 1) < 0.03
+    again = fit_fainter_copy(path, res, np.load(out / "model.npy"), 4.0, 5)
+    assert again.values["x0"] == pytest.approx(copy["values"]["x0"], abs=1e-4)
+    assert again.values["flux"] == pytest.approx(copy["values"]["flux"], rel=1e-4)

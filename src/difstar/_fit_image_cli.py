@@ -104,11 +104,35 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         return summary
 
 
-def _fainter(manifest, out, summary, factors, seed, *, max_steps, verbose) -> dict:
-    """Fit copies of the star made ``factors`` times fainter; compare the geometry."""
+def fit_fainter_copy(manifest, summary, model_image, factor, seed, *, max_steps=None,
+                     verbose=False):
+    """Fit, by ``manifest``'s stages, a copy of its star ``factor`` times fainter with the
+    noise of draw ``seed`` (:func:`difstar._fitting.fainter_copy`), made from a fit of
+    the star: ``summary`` (result.json's content: the background and the noise estimated
+    from the residuals) and its ``model_image``. Returns the copy's FitResult."""
     from ._fitting import FitData, Noise, fainter_copy, fit, load_manifest
 
     model, data, opts = load_manifest(manifest)
+    noise = summary.get("noise")
+    if noise is None:
+        raise ValueError("--fainter needs a stage with noise_from_residuals in the manifest "
+                         "(the fainter copies need a noise model in the data's units).")
+    noise = Noise(noise["read"], noise["gain"], 0.0)
+    d = fainter_copy(data, model_image, summary["values"]["background"], factor, noise,
+                     seed=seed)
+    nz = opts["manifest"]["data"].get("noise", {})  # σ as the manifest makes them
+    d = FitData.from_array(d.image, mask=data.mask, pixel_scale=data.pixel_scale,
+                           noise=Noise(nz.get("read"), float(nz.get("gain", 1.0)),
+                                       float(nz.get("floor", 0.0))))
+    m = model.with_values({"flux": model.params["flux"].value / factor})
+    return fit(m, d, stages=opts["stages"], max_steps=max_steps or opts["max_steps"],
+               verbose=verbose)
+
+
+def _fainter(manifest, out, summary, factors, seed, *, max_steps, verbose) -> dict:
+    """Fit copies of the star made ``factors`` times fainter; compare the geometry."""
+    from ._fitting import Noise
+
     noise = summary.get("noise")
     if noise is None:
         raise ValueError("--fainter needs a stage with noise_from_residuals in the manifest "
@@ -119,13 +143,7 @@ def _fainter(manifest, out, summary, factors, seed, *, max_steps, verbose) -> di
     rows = []
     for i, f in enumerate(factors):
         t = time.perf_counter()
-        d = fainter_copy(data, mimg, ref["background"], f, noise, seed=seed + i)
-        nz = opts["manifest"]["data"].get("noise", {})  # σ as the manifest makes them
-        d = FitData.from_array(d.image, mask=data.mask, pixel_scale=data.pixel_scale,
-                               noise=Noise(nz.get("read"), float(nz.get("gain", 1.0)),
-                                           float(nz.get("floor", 0.0))))
-        m = model.with_values({"flux": model.params["flux"].value / f})
-        res = fit(m, d, stages=opts["stages"], max_steps=max_steps or opts["max_steps"])
+        res = fit_fainter_copy(manifest, summary, mimg, f, seed + i, max_steps=max_steps)
         rows.append({"factor": f, "rotation": res.values["rotation"],
                      "rotation_error": res.errors.get("rotation"),
                      "residual_rms_over_peak": res.residual_rms_peak, "status": res.status,
@@ -138,15 +156,19 @@ def _fainter(manifest, out, summary, factors, seed, *, max_steps, verbose) -> di
              "rotation_original": ref["rotation"], "copies": rows,
              "rotation_spread_deg": float(rot.max() - rot.min())}
     (Path(out) / "fainter.json").write_text(json.dumps(study, indent=2, default=float) + "\n")
+
+    def pm(err):  # no standard error where the manifest holds the rotation
+        return "(fixed)" if err is None else f"± {err:.4f}"
+
     lines = ["Copies of the star made f times fainter, with the noise a fainter star would "
              f"have (read {noise.read:.3g}, gain {noise.gain:.4g} in the data's units, "
              "estimated from the residuals), fitted by the same manifest.", "",
              "| star | rotation (°) | residual RMS / peak | status | s |", "|---|---|---|---|---|",
-             f"| original | {ref['rotation']:.4f} ± {summary['errors'].get('rotation', 0):.4f} "
+             f"| original | {ref['rotation']:.4f} {pm(summary['errors'].get('rotation'))} "
              f"| {100 * summary['residual_rms_over_peak']:.3f} % | {summary['status']} | "
              f"{summary['wall_time_s']:.0f} |"]
     for r in rows:
-        lines.append(f"| × 1/{r['factor']:g} | {r['rotation']:.4f} ± {r['rotation_error']:.4f} "
+        lines.append(f"| × 1/{r['factor']:g} | {r['rotation']:.4f} {pm(r['rotation_error'])} "
                      f"| {100 * r['residual_rms_over_peak']:.3f} % | {r['status']} | "
                      f"{r['seconds']:.0f} |")
     lines += ["", f"Spread of the rotations: {study['rotation_spread_deg']:.4f}°."]
