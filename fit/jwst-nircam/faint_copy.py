@@ -33,6 +33,9 @@ def main(argv=None) -> int:
     ap.add_argument("--factor", type=float, default=16.0, help="how many times fainter")
     ap.add_argument("--seed", type=int, default=0, help="the noise draw")
     a = ap.parse_args(argv)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # as difstar fit-image runs
     from difstar._fit_image_cli import fit_fainter_copy
 
     res_dir = Path(a.result)
