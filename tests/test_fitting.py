@@ -210,6 +210,24 @@ def test_jwst_manifest_loads_and_model_matches_data_shape():
     assert 0.2 < img.max() / small.image.max() < 5
 
 
+
+def test_jwst_model_mirrored_is_the_mirror_image():
+    """An exact symmetry, not the code's own output: the JWST pupil is mirror-symmetric
+    about its vertical axis, so the campaign's model with the pupil's rotation, the
+    upper strut's tilt, the centre's x and the Zernike terms odd in x (Noll 5, 8, 10)
+    negated is the left-right mirror of the image. Fails if the pupil, the struts, the
+    shift or a Zernike term's orientation (e.g. x and y swapped) breaks the symmetry."""
+    model, _, _ = load_manifest(ROOT / "fit" / "jwst-nircam" / "manifest.json")
+    v = dict(model.values())
+    v.update(rotation=0.7, strut_tilt=2.0, x0=0.31, y0=-0.22, z4=160.0, z5=30.0, z6=-55.0,
+             z7=-12.0, z8=-9.0, z9=-5.0, z10=6.0, z11=170.0)
+    odd = ("rotation", "strut_tilt", "x0", "z5", "z8", "z10")
+    w = {k: (-x if k in odd else x) for k, x in v.items()}
+    a = np.asarray(model.image(v, (21, 21)))
+    b = np.asarray(model.image(w, (21, 21)))
+    assert np.abs(a - b).max() > 0.05 * a.max()  # the wavefront and geometry show
+    np.testing.assert_allclose(b, a[:, ::-1], rtol=0, atol=1e-12 * a.max())
+
 def test_converges_from_rough_starts(synthetic):
     """From three starts with every free parameter within ± 20 % (of its bounds' half
     width where it starts at 0), the fit of the independent star lands on the same
