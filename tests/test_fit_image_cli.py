@@ -20,6 +20,27 @@ ROOT = Path(__file__).resolve().parents[1]
 RADIUS = 1.3  # disc source, data pixels
 
 
+def _manifest(name, data, stages, **top):
+    """A manifest of the generator's star (obstructed circle, struts, at LAM; centre,
+    flux and background free), with ``data``, ``stages`` and other top-level keys."""
+    return {
+        "name": name, "data": data, **top,
+        "pupil": {"builder": "circle", "radius": 0.425},
+        "light": {"wavelength": LAM},
+        "detector": {"pad": 4},
+        "accuracy": 3e-3,
+        "params": {
+            "rotation": TRUE["rotation"], "pixel_scale": P, "obstruction": 0.16,
+            "strut_width": 0.06,
+            "x0": {"value": 0.0, "free": True, "bounds": [-2, 2]},
+            "y0": {"value": 0.0, "free": True, "bounds": [-2, 2]},
+            "flux": {"value": 900.0, "free": True, "scale": 100.0},
+            "background": {"value": 0.0, "free": True, "scale": 1.0},
+        },
+        "stages": stages,
+    }
+
+
 @pytest.fixture(scope="module")
 def bracket(tmp_path_factory):
     d = tmp_path_factory.mktemp("bracket")
@@ -31,26 +52,9 @@ def bracket(tmp_path_factory):
         sigma = 2e-3 * lin.max()
         np.save(d / f"cap{i}.npy", img + rng.normal(0, sigma, img.shape))
         caps.append({"path": f"cap{i}.npy", "sigma": sigma, "exposure": t})
-    man = {
-        "name": "bracket",
-        "data": caps,
-        "per_capture": ["background"],
-        "pupil": {"builder": "circle", "radius": 0.425},
-        "light": {"wavelength": LAM},
-        "source": "disc",
-        "detector": {"pad": 4},
-        "accuracy": 3e-3,
-        "params": {
-            "rotation": TRUE["rotation"], "pixel_scale": P, "obstruction": 0.16,
-            "strut_width": 0.06,
-            "x0": {"value": 0.0, "free": True, "bounds": [-2, 2]},
-            "y0": {"value": 0.0, "free": True, "bounds": [-2, 2]},
-            "flux": {"value": 900.0, "free": True, "scale": 100.0},
-            "background": {"value": 0.0, "free": True, "scale": 1.0},
-            "source_radius": {"value": 1.0, "free": True, "bounds": [0.0, 3.0]},
-        },
-        "stages": [{"free": "all", "max_steps": 30}],
-    }
+    man = _manifest("bracket", caps, [{"free": "all", "max_steps": 30}],
+                    per_capture=["background"], source="disc")
+    man["params"]["source_radius"] = {"value": 1.0, "free": True, "bounds": [0.0, 3.0]}
     path = d / "manifest.json"
     path.write_text(json.dumps(man))
     return path
@@ -142,24 +146,9 @@ def test_fainter_copies_end_to_end(tmp_path):
     img = lin + TRUE["background"]
     img = img + rng.normal(0, 1, img.shape) * np.sqrt(read**2 + lin / gain)
     np.save(tmp_path / "star.npy", img)
-    man = {
-        "name": "one star",
-        "data": {"path": "star.npy", "noise": {"read": read, "gain": gain}},
-        "pupil": {"builder": "circle", "radius": 0.425},
-        "light": {"wavelength": LAM},
-        "detector": {"pad": 4},
-        "accuracy": 3e-3,
-        "params": {
-            "rotation": TRUE["rotation"], "pixel_scale": P, "obstruction": 0.16,
-            "strut_width": 0.06,
-            "x0": {"value": 0.0, "free": True, "bounds": [-2, 2]},
-            "y0": {"value": 0.0, "free": True, "bounds": [-2, 2]},
-            "flux": {"value": 900.0, "free": True, "scale": 100.0},
-            "background": {"value": 0.0, "free": True, "scale": 1.0},
-        },
-        "stages": [{"free": "all", "max_steps": 30},
-                   {"free": "all", "max_steps": 30, "noise_from_residuals": {"floor": 0.0}}],
-    }
+    man = _manifest("one star", {"path": "star.npy", "noise": {"read": read, "gain": gain}},
+                    [{"free": "all", "max_steps": 30},
+                     {"free": "all", "max_steps": 30, "noise_from_residuals": {"floor": 0.0}}])
     path = tmp_path / "manifest.json"
     path.write_text(json.dumps(man))
     out = tmp_path / "out"
