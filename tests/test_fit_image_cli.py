@@ -134,7 +134,7 @@ def test_rough_starts_about_the_result(bracket):
 
 
 @pytest.mark.slow
-def test_fainter_copies_end_to_end(tmp_path):
+def test_fainter_copies_end_to_end(tmp_path, capsys):
     """--fainter 4 on one capture with noise in electrons (gain 50): the main fit and the
     copy 4 times fainter both recover the generator's centre, and the copy its flux / 4;
     fit_fainter_copy (what fit/jwst-nircam/faint_copy.py runs) fits the same copy."""
@@ -150,6 +150,10 @@ def test_fainter_copies_end_to_end(tmp_path):
                     [{"free": "all", "max_steps": 30},
                      {"free": "all", "max_steps": 30, "noise_from_residuals": {"floor": 0.0}}])
     path = tmp_path / "manifest.json"
+    # without a noise_from_residuals stage: refused before any fitting, nothing written
+    path.write_text(json.dumps(dict(man, stages=man["stages"][:1])))
+    assert main([str(path), "--out", str(tmp_path / "o"), "--quiet", "--fainter", "4"]) == 2
+    assert not (tmp_path / "o").exists() and "noise_from_residuals" in capsys.readouterr().err
     path.write_text(json.dumps(man))
     out = tmp_path / "out"
     assert main([str(path), "--out", str(out), "--quiet", "--fainter", "4", "--seed", "5"]) == 0

@@ -86,6 +86,9 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
     if fainter and isinstance(loaded[1], list):
         raise FitInputError("--fainter takes a manifest with one capture (its data is a list "
                             "of captures); leave --fainter out.")
+    if fainter and not any(isinstance(st, dict) and st.get("noise_from_residuals") is not None
+                           for st in loaded[2]["stages"] or ()):
+        raise FitInputError(_NEEDS_NOISE)  # refused before the main fit, not after it
     files = ["result.json", "fit.png", "model.npy"]
     if robustness:
         files += ["robustness.json", "robustness.md"]
@@ -104,6 +107,22 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         return summary
 
 
+_NEEDS_NOISE = ("--fainter needs a stage with noise_from_residuals in the manifest (the "
+                "fainter copies need a noise model in the data's units); add one or leave "
+                "--fainter out.")
+
+
+def _copy_noise(summary):
+    """The noise the fainter copies get: the read noise and gain that the manifest's
+    noise_from_residuals estimated (result.json's ``noise``)."""
+    from ._fitting import FitInputError, Noise
+
+    n = summary.get("noise")
+    if n is None:
+        raise FitInputError(_NEEDS_NOISE)
+    return Noise(n["read"], n["gain"], 0.0)
+
+
 def fit_fainter_copy(manifest, summary, model_image, factor, seed, *, max_steps=None,
                      verbose=False):
     """Fit, by ``manifest``'s stages, a copy of its star ``factor`` times fainter with the
@@ -113,11 +132,7 @@ def fit_fainter_copy(manifest, summary, model_image, factor, seed, *, max_steps=
     from ._fitting import FitData, Noise, fainter_copy, fit, load_manifest
 
     model, data, opts = load_manifest(manifest)
-    noise = summary.get("noise")
-    if noise is None:
-        raise ValueError("--fainter needs a stage with noise_from_residuals in the manifest "
-                         "(the fainter copies need a noise model in the data's units).")
-    noise = Noise(noise["read"], noise["gain"], 0.0)
+    noise = _copy_noise(summary)
     d = fainter_copy(data, model_image, summary["values"]["background"], factor, noise,
                      seed=seed)
     nz = opts["manifest"]["data"].get("noise", {})  # σ as the manifest makes them
@@ -131,13 +146,7 @@ def fit_fainter_copy(manifest, summary, model_image, factor, seed, *, max_steps=
 
 def _fainter(manifest, out, summary, factors, seed, *, max_steps, verbose) -> dict:
     """Fit copies of the star made ``factors`` times fainter; compare the geometry."""
-    from ._fitting import Noise
-
-    noise = summary.get("noise")
-    if noise is None:
-        raise ValueError("--fainter needs a stage with noise_from_residuals in the manifest "
-                         "(the fainter copies need a noise model in the data's units).")
-    noise = Noise(noise["read"], noise["gain"], 0.0)
+    noise = _copy_noise(summary)
     ref = summary["values"]
     mimg = np.load(Path(out) / "model.npy")
     rows = []
