@@ -210,7 +210,6 @@ def test_jwst_manifest_loads_and_model_matches_data_shape():
     assert 0.2 < img.max() / small.image.max() < 5
 
 
-
 def test_jwst_model_mirrored_is_the_mirror_image():
     """An exact symmetry, not the code's own output: the JWST pupil is mirror-symmetric
     about its vertical axis, so the campaign's model with the pupil's rotation, the
@@ -227,6 +226,7 @@ def test_jwst_model_mirrored_is_the_mirror_image():
     b = np.asarray(model.image(w, (21, 21)))
     assert np.abs(a - b).max() > 0.05 * a.max()  # the wavefront and geometry show
     np.testing.assert_allclose(b, a[:, ::-1], rtol=0, atol=1e-12 * a.max())
+
 
 def test_converges_from_rough_starts(synthetic):
     """From three starts with every free parameter within ± 20 % (of its bounds' half
