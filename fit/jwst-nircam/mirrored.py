@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -67,31 +66,13 @@ def main(argv=None) -> int:
     ap.add_argument("result", help="the star's `difstar fit-image` result folder")
     ap.add_argument("--out", required=True, help="a new folder")
     a = ap.parse_args(argv)
-    from difstar._fit_image_cli import run
-    from difstar._fitting import _resolve
+    from _copy_fit import fit_copy
 
-    out, man_path = Path(a.out), Path(a.manifest)
     star = json.loads((Path(a.result) / "result.json").read_text())
-    man = json.loads(man_path.read_text())
-    if not isinstance(man["data"], dict):
-        print("mirrored.py takes a manifest with one capture.", file=sys.stderr)
+    got = fit_copy(Path(a.manifest), Path(a.out), "mirrored.fits", mirrored_fits,
+                   "The star's left-right mirror image.")
+    if got is None:
         return 2
-    try:
-        out.mkdir(parents=True)
-    except FileExistsError:
-        print(f"{out} exists: give a new folder.", file=sys.stderr)
-        return 2
-    try:
-        mirrored_fits(Path(_resolve(man["data"]["path"], man_path.parent)),
-                      out / "mirrored.fits")
-        man["data"] = dict(man["data"], path="mirrored.fits")
-        man["description"] = "The star's left-right mirror image. " + man.get("description", "")
-        (out / "manifest.json").write_text(json.dumps(man, indent=2) + "\n")
-        run(out / "manifest.json", out / "fit")
-    except BaseException:
-        shutil.rmtree(out)  # only what this script made
-        raise
-    got = json.loads((out / "fit" / "result.json").read_text())
     odd = odd_in_x(star["values"])
     lines = ["The star's fit, its mirror (the parameters odd in x negated), and the fit of "
              "the mirrored star by the same manifest.", "",
@@ -107,7 +88,7 @@ def main(argv=None) -> int:
     lines += ["", f"Residual RMS / peak: star {100 * star['residual_rms_over_peak']:.3f} %, "
               f"mirrored star {100 * got['residual_rms_over_peak']:.3f} %; χ²/dof "
               f"{star['chi2_dof']:.4g}, {got['chi2_dof']:.4g}."]
-    (out / "mirror.md").write_text("\n".join(lines) + "\n")
+    (Path(a.out) / "mirror.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
 

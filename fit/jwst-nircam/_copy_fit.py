@@ -1,0 +1,39 @@
+"""What mirrored.py and shifted.py share: write a changed copy of a manifest's FITS file
+into a new folder and fit it with the same manifest (only the file swapped)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+
+def fit_copy(manifest: Path, out: Path, name: str, write_fits, description: str):
+    """Makes the new folder ``out`` (refused if it exists), writes ``out/name`` with
+    ``write_fits(source_fits_path, destination_path)``, ``out/manifest.json`` (the manifest
+    with that file) and runs ``difstar fit-image`` into ``out/fit``. Returns that fit's
+    ``result.json`` as a dict, or None (with a message) when ``out`` exists or the manifest
+    has more than one capture. On any failure removes ``out`` again (only what it made)."""
+    from difstar._fit_image_cli import run
+    from difstar._fitting import _resolve
+
+    man = json.loads(manifest.read_text())
+    if not isinstance(man["data"], dict):
+        print(f"{Path(sys.argv[0]).name} takes a manifest with one capture.", file=sys.stderr)
+        return None
+    try:
+        out.mkdir(parents=True)
+    except FileExistsError:
+        print(f"{out} exists: give a new folder.", file=sys.stderr)
+        return None
+    try:
+        write_fits(Path(_resolve(man["data"]["path"], manifest.parent)), out / name)
+        man["data"] = dict(man["data"], path=name)
+        man["description"] = description + " " + man.get("description", "")
+        (out / "manifest.json").write_text(json.dumps(man, indent=2) + "\n")
+        run(out / "manifest.json", out / "fit")
+    except BaseException:
+        shutil.rmtree(out)  # only what this script made
+        raise
+    return json.loads((out / "fit" / "result.json").read_text())
