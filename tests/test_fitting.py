@@ -195,6 +195,29 @@ def test_spike_angles_of_lines():
     np.testing.assert_allclose(sorted(ang), [12.0, 71.0, 133.0], atol=0.5)
 
 
+def test_spike_angles_near_given_directions():
+    """A faint line beside a brighter one: the plain search finds the two brightest, ``near``
+    finds the faint line where it is asked for, and NaN where there is only a slope."""
+    h = w = 81
+    yy, xx = np.mgrid[0:h, 0:w]
+    dx, dy = xx - 40.3, -(yy - 39.8)
+    r = np.hypot(dx, dy) + 1.0
+    img = np.zeros((h, w))
+    for a, amp in ((12.0, 1.0), (71.0, 1.0), (133.0, 0.2)):
+        t = math.radians(a)
+        across = -dx * math.sin(t) + dy * math.cos(t)
+        img += amp * np.exp(-0.5 * across**2) / r**2
+    top = spike_angles(img, (40.3, 39.8), r_min=10, r_max=35, n_spikes=4)
+    np.testing.assert_allclose(sorted(top), [12.0, 71.0], atol=0.5)
+    got = spike_angles(img, (40.3, 39.8), r_min=10, r_max=35, near=[135.0, 179.0, 20.0],
+                       window=5.0)
+    assert abs(got[0] - 133.0) < 0.5
+    assert math.isnan(got[1])  # 179 ± 5 (wrapping past 0): the 12° line's flank, no peak
+    assert math.isnan(got[2])  # 20 ± 5: the 12° line's slope
+    with pytest.raises(FitInputError, match="window"):
+        spike_angles(img, (40.3, 39.8), near=[10.0], window=120.0)
+
+
 def test_jwst_manifest_loads_and_model_matches_data_shape():
     path = ROOT / "fit" / "jwst-nircam" / "manifest.json"
     data_file = ROOT.parent / "shared" / "data" / "measured_psf" / "psf_f090w_star0.fits"

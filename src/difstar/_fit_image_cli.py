@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -258,8 +259,8 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     measured = spike_angles(bgsub, centre, r_min=sp.get("r_min", 15), r_max=sp.get("r_max", 40),
                             n_spikes=sp.get("n_spikes", 8))
     modelled = spike_angles(mimg - v0["background"], centre,
-                            r_min=sp.get("r_min", 15), r_max=sp.get("r_max", 40),
-                            n_spikes=sp.get("n_spikes", 8))
+                            r_min=sp.get("r_min", 15), r_max=sp.get("r_max", 40), near=measured)
+    modelled = [a if math.isfinite(a) else None for a in modelled]  # None: no peak there
     summary = {
         "manifest": str(manifest),
         "status": res.status,
@@ -274,7 +275,9 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
         "warnings": res.warnings,
         "spike_angles_deg": {
             "note": "counter-clockwise from +x (image right), y up, folded into [0, 180); "
-                    "azimuthal peaks of r^2 (I - background) between r_min and r_max px",
+                    "azimuthal peaks of r^2 (I - background) between r_min and r_max px; "
+                    "in the model, the peak within 8 degrees of each one in the data "
+                    "(null: no peak there)",
             "measured_in_data": measured,
             "measured_in_model": modelled,
             "implied_by_fit": model_spike_angles(res.values, opts["builder"]),

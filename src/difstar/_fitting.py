@@ -1565,13 +1565,18 @@ def chi2_at(model: ImageModel, data, values: Mapping[str, float], target=None) -
 
 
 def spike_angles(image, centre=None, *, r_min=15.0, r_max=40.0, n_spikes=6, bins=720,
-                 symmetric=True):
+                 symmetric=True, near=None, window=8.0):
     """Angles (degrees, counter-clockwise from +x, y up, in [0, 180) when ``symmetric``)
     of the ``n_spikes`` brightest spikes of an image, from the azimuthal profile of
     r² I between ``r_min`` and ``r_max`` pixels of ``centre`` (x, y in pixel units from
     the top-left pixel's centre; default: the intensity-weighted centre of the brightest
     3 × 3 pixels). Each peak is refined by a parabola through its three bins. With
-    ``symmetric`` the profile is folded (θ and θ + 180° are one spike)."""
+    ``symmetric`` the profile is folded (θ and θ + 180° are one spike).
+
+    ``near`` (angles in degrees): instead, for each of them the brightest peak within
+    ± ``window`` degrees, in the same order (NaN where the profile there has no peak,
+    only a slope: its maximum at the window's edge). This measures a second image's
+    spikes where the first image's are, e.g. a model's where the data's were found."""
     img = np.asarray(image, float)
     h, w = img.shape
     if centre is None:
@@ -1593,14 +1598,32 @@ def spike_angles(image, centre=None, *, r_min=15.0, r_max=40.0, n_spikes=6, bins
     k /= k.sum()
     prof = np.convolve(np.concatenate([prof[-2:], prof, prof[:2]]), k, "valid")
     width = period / nb
+
+    def refined(i):
+        a, b, c = prof[i - 1], prof[i], prof[(i + 1) % nb]
+        den = a - 2 * b + c
+        off = 0.5 * (a - c) / den if den != 0 else 0.0
+        return ((i + 0.5 + off) * width) % period
+
+    if near is not None:
+        near = np.asarray(near, float).ravel()
+        if not (np.all(np.isfinite(near)) and 2 * width < window < period / 2):
+            raise FitInputError(f"spike_angles: near must be finite angles and window between "
+                                f"{2 * width:g} and {period / 2:g} degrees; got {near}, {window}.")
+        centres = (np.arange(nb) + 0.5) * width
+        out = []
+        for t in near:
+            gap = np.abs((centres - t + period / 2) % period - period / 2)
+            inside = np.flatnonzero(gap <= window)
+            i = int(inside[np.argmax(prof[inside])])
+            edge = gap[i] > window - width
+            out.append(float("nan") if edge else refined(i))
+        return out
     peaks = []
     p = prof.copy()
     for _ in range(n_spikes // (2 if symmetric else 1)):
         i = int(np.argmax(p))
-        a, b, c = prof[i - 1], prof[i], prof[(i + 1) % nb]
-        den = a - 2 * b + c
-        off = 0.5 * (a - c) / den if den != 0 else 0.0
-        peaks.append(((i + 0.5 + off) * width) % period)
+        peaks.append(refined(i))
         lo, hi = i - int(8 / width), i + int(8 / width)
         for j in range(lo, hi + 1):
             p[j % nb] = -np.inf
