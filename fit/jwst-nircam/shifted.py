@@ -40,7 +40,7 @@ def shifted_image(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
     h, w = img.shape
     a = np.pad(np.asarray(img, np.float32), _PAD, mode="edge")
     box = (_PAD - dx, _PAD - dy, _PAD - dx + w, _PAD - dy + h)
-    return np.asarray(Image.fromarray(a, mode="F").resize((w, h), Image.LANCZOS, box=box))
+    return np.asarray(Image.fromarray(a).resize((w, h), Image.LANCZOS, box=box))
 
 
 def shifted_fits(dx: float, dy: float):
