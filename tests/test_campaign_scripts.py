@@ -85,3 +85,26 @@ def test_shifted_and_mirrored_fits_keep_the_wcs(tmp_path):
         assert (c, r) == want
         np.testing.assert_allclose(w.world_to_pixel(sky), want, atol=1e-6)
     assert src.read_bytes() == before  # the star's file is not touched
+
+
+def test_write_comparison_rows(tmp_path, capsys):
+    """The comparison table's differences are against the expected value, in the star's
+    standard errors; parameters the copy did not fit are left out."""
+    sys.path.insert(0, str(HERE))
+    try:
+        from _copy_fit import write_comparison
+    finally:
+        sys.path.remove(str(HERE))
+    star = {"free": ["rotation", "flux", "z9"], "values": {"rotation": 0.5, "flux": 10.0,
+            "z9": 1.0}, "errors": {"rotation": 0.1, "flux": 2.0, "z9": 1.0},
+            "residual_rms_over_peak": 0.004, "chi2_dof": 2.5}
+    got = {"values": {"rotation": -0.45, "flux": 11.0}, "residual_rms_over_peak": 0.005,
+           "chi2_dof": 2.6}
+    path = tmp_path / "c.md"
+    write_comparison(path, "T", star, got, "copy", lambda k, v: -v if k == "rotation" else v,
+                     "expected")
+    rows = [r.split(" | ") for r in path.read_text().splitlines() if r.startswith("| ")][1:]
+    assert [r[0] for r in rows] == ["| rotation", "| flux"]
+    assert rows[0][2:] == ["-0.5", "-0.45", "+0.05", "+0.500 |"]
+    assert rows[1][2:] == ["10", "11", "+1", "+0.500 |"]
+    assert "0.400 %, copy 0.500 %" in path.read_text() and "| rotation" in capsys.readouterr().out

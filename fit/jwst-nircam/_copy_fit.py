@@ -37,3 +37,29 @@ def fit_copy(manifest: Path, out: Path, name: str, write_fits, description: str)
         shutil.rmtree(out)  # only what this script made
         raise
     return json.loads((out / "fit" / "result.json").read_text())
+
+
+def write_comparison(path: Path, title: str, star: dict, got: dict, copy: str,
+                     expected=None, expected_label: str = "") -> None:
+    """Writes (and prints) ``path``: a Markdown table of every free parameter, the star's
+    fit, ``expected(name, star_value)`` under ``expected_label`` if given (else the star's
+    value is what the copy should give), the copy's fit, their difference and that in the
+    star's standard errors; then both fits' residual RMS / peak and χ²/dof."""
+    cols = ["parameter", "star"] + ([expected_label] if expected else []) + [
+        copy, "difference", "difference / standard error"]
+    lines = [title, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for k in star["free"]:
+        if k not in got["values"]:
+            continue
+        v = star["values"][k]
+        want = expected(k, v) if expected else v
+        d = got["values"][k] - want
+        se = star["errors"].get(k) or float("nan")
+        cells = [k, f"{v:.6g}"] + ([f"{want:.6g}"] if expected else []) + [
+            f"{got['values'][k]:.6g}", f"{d:+.4g}", f"{d / se:+.3f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", f"Residual RMS / peak: star {100 * star['residual_rms_over_peak']:.3f} %, "
+              f"{copy} {100 * got['residual_rms_over_peak']:.3f} %; χ²/dof "
+              f"{star['chi2_dof']:.4g}, {got['chi2_dof']:.4g}."]
+    path.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))

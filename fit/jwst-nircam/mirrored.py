@@ -66,7 +66,7 @@ def main(argv=None) -> int:
     ap.add_argument("result", help="the star's `difstar fit-image` result folder")
     ap.add_argument("--out", required=True, help="a new folder")
     a = ap.parse_args(argv)
-    from _copy_fit import fit_copy
+    from _copy_fit import fit_copy, write_comparison
 
     star = json.loads((Path(a.result) / "result.json").read_text())
     got = fit_copy(Path(a.manifest), Path(a.out), "mirrored.fits", mirrored_fits,
@@ -74,22 +74,10 @@ def main(argv=None) -> int:
     if got is None:
         return 2
     odd = odd_in_x(star["values"])
-    lines = ["The star's fit, its mirror (the parameters odd in x negated), and the fit of "
-             "the mirrored star by the same manifest.", "",
-             "| parameter | star | mirror of the star's fit | mirrored star's fit | "
-             "difference / standard error |", "|---|---|---|---|---|"]
-    for k in star["free"]:
-        if k not in got["values"]:
-            continue
-        want = -star["values"][k] if k in odd else star["values"][k]
-        se = star["errors"].get(k) or float("nan")
-        lines.append(f"| {k} | {star['values'][k]:.6g} | {want:.6g} | {got['values'][k]:.6g} "
-                     f"| {(got['values'][k] - want) / se:+.3f} |")
-    lines += ["", f"Residual RMS / peak: star {100 * star['residual_rms_over_peak']:.3f} %, "
-              f"mirrored star {100 * got['residual_rms_over_peak']:.3f} %; χ²/dof "
-              f"{star['chi2_dof']:.4g}, {got['chi2_dof']:.4g}."]
-    (Path(a.out) / "mirror.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_comparison(Path(a.out) / "mirror.md", "The star's fit, its mirror (the parameters "
+                     "odd in x negated), and the fit of the mirrored star by the same manifest.",
+                     star, got, "mirrored star", lambda k, v: -v if k in odd else v,
+                     "mirror of the star's fit")
     return 0
 
 

@@ -72,29 +72,16 @@ def main(argv=None) -> int:
     if not all(math.isfinite(s) and abs(s) <= 3 for s in a.shift):
         ap.error("--shift: each of DX, DY must be a finite number of pixels within ±3 "
                  "(the manifest's centre bounds).")
-    from _copy_fit import fit_copy
+    from _copy_fit import fit_copy, write_comparison
 
     star = json.loads((Path(a.result) / "result.json").read_text())
     got = fit_copy(Path(a.manifest), Path(a.out), "shifted.fits", shifted_fits(dx, dy),
                    f"The star moved by ({dx:g}, {dy:g}) px (Lanczos3).")
     if got is None:
         return 2
-    lines = [f"The star's fit and the fit of the star moved by {dx:g} px along the columns "
-             f"and {dy:g} px along the rows (Lanczos3), same manifest.", "",
-             "| parameter | star | moved star | difference | difference / standard error |",
-             "|---|---|---|---|---|"]
-    for k in star["free"]:
-        if k not in got["values"]:
-            continue
-        d = got["values"][k] - star["values"][k]
-        se = star["errors"].get(k) or float("nan")
-        lines.append(f"| {k} | {star['values'][k]:.6g} | {got['values'][k]:.6g} | {d:+.4g} "
-                     f"| {d / se:+.3f} |")
-    lines += ["", f"Residual RMS / peak: star {100 * star['residual_rms_over_peak']:.3f} %, "
-              f"moved star {100 * got['residual_rms_over_peak']:.3f} %; χ²/dof "
-              f"{star['chi2_dof']:.4g}, {got['chi2_dof']:.4g}."]
-    (Path(a.out) / "shift.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_comparison(Path(a.out) / "shift.md", f"The star's fit and the fit of the star moved "
+                     f"by {dx:g} px along the columns and {dy:g} px along the rows (Lanczos3), "
+                     "same manifest.", star, got, "moved star")
     return 0
 
 
