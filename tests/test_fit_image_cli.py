@@ -85,6 +85,9 @@ def test_fit_image_cli_bracket_end_to_end(bracket, capsys):
     assert res["chi2_dof"] < 2.0
     assert np.load(out / "model.npy").shape == (2, 19, 19)
     assert (out / "fit.png").stat().st_size > 10_000
+    spikes = res["spike_angles_deg"]  # the model's, one per data spike (null: no peak)
+    assert len(spikes["measured_in_model"]) == len(spikes["measured_in_data"])
+    assert all(a is None or 0 <= a < 180 for a in spikes["measured_in_model"])
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     # nothing is overwritten without --overwrite; a bracket cannot make fainter copies
     assert main([str(bracket), "--out", str(out), "--quiet"]) == 2
@@ -94,6 +97,12 @@ def test_fit_image_cli_bracket_end_to_end(bracket, capsys):
     assert "one capture" in capsys.readouterr().err
     assert not (bracket.parent / "o2").exists()
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_console_spike_angles_name_a_missing_peak():
+    from difstar._fit_image_cli import _degrees
+
+    assert _degrees([1.6770, None, 150.4648]) == "1.68°, no peak, 150.46°"
 
 
 def test_bad_manifests_exit_2_with_the_field_named(tmp_path, capsys):

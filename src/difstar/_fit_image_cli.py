@@ -290,10 +290,15 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     _figure(res, out / "fit.png", man.get("name", Path(manifest).parent.name))
     if verbose:
         print(res.summary())
-        print(f"spikes measured in the data: {[round(a, 2) for a in measured]}")
-        print(f"spikes measured in the model: {[round(a, 2) for a in modelled]}")
+        print(f"spikes measured in the data: {_degrees(measured)}")
+        print(f"spikes measured in the model (near the data's): {_degrees(modelled)}")
         print(f"wall time {wall:.1f} s; written to {final}")
     return summary
+
+
+def _degrees(angles) -> str:
+    """Spike angles for the console: "1.68°, 30.32°, no peak" (None: no peak there)."""
+    return ", ".join("no peak" if a is None else f"{a:.2f}°" for a in angles)
 
 
 def _add_arguments(ap) -> None:
