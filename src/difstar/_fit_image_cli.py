@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+_MODEL_SPIKE_WINDOW = 8.0  # degrees: the model's spikes are measured this near the data's
+
 
 def _figure(res, path, title):
     """Data, model and residual on a log scale: one row per capture."""
@@ -259,7 +261,8 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     measured = spike_angles(bgsub, centre, r_min=sp.get("r_min", 15), r_max=sp.get("r_max", 40),
                             n_spikes=sp.get("n_spikes", 8))
     modelled = spike_angles(mimg - v0["background"], centre,
-                            r_min=sp.get("r_min", 15), r_max=sp.get("r_max", 40), near=measured)
+                            r_min=sp.get("r_min", 15), r_max=sp.get("r_max", 40), near=measured,
+                            window=_MODEL_SPIKE_WINDOW)
     modelled = [a if math.isfinite(a) else None for a in modelled]  # None: no peak there
     summary = {
         "manifest": str(manifest),
@@ -276,8 +279,8 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
         "spike_angles_deg": {
             "note": "counter-clockwise from +x (image right), y up, folded into [0, 180); "
                     "azimuthal peaks of r^2 (I - background) between r_min and r_max px; "
-                    "in the model, the peak within 8 degrees of each one in the data "
-                    "(null: no peak there)",
+                    f"in the model, the peak within {_MODEL_SPIKE_WINDOW:g} degrees of each "
+                    "one in the data (null: no peak there)",
             "measured_in_data": measured,
             "measured_in_model": modelled,
             "implied_by_fit": model_spike_angles(res.values, opts["builder"]),
