@@ -75,10 +75,11 @@ def test_shifted_and_mirrored_fits_keep_the_wcs(tmp_path):
     fits.PrimaryHDU(img, head).writeto(src)
     before = src.read_bytes()
     sky = WCS(head).pixel_to_world(12.0, 14.0)  # the star's sky position (x, y, 0-based)
-    for name, write, want in (("shifted", _script("shifted").shifted_fits(2.0, -1.0), (14, 13)),
-                              ("mirrored", _script("mirrored").mirrored_fits, (18, 14))):
+    write_changed_fits = _script("_copy_fit").write_changed_fits
+    for name, change, want in (("shifted", _script("shifted").shifted(2.0, -1.0), (14, 13)),
+                               ("mirrored", _script("mirrored").mirrored, (18, 14))):
         dst = tmp_path / f"{name}.fits"
-        write(src, dst)
+        write_changed_fits(src, dst, change)
         with fits.open(dst) as h:
             data, w = h[0].data, WCS(h[0].header)
         r, c = np.unravel_index(np.argmax(data), data.shape)
@@ -90,11 +91,7 @@ def test_shifted_and_mirrored_fits_keep_the_wcs(tmp_path):
 def test_write_comparison_rows(tmp_path, capsys):
     """The comparison table's differences are against the expected value, in the star's
     standard errors; parameters the copy did not fit are left out."""
-    sys.path.insert(0, str(HERE))
-    try:
-        from _copy_fit import write_comparison
-    finally:
-        sys.path.remove(str(HERE))
+    write_comparison = _script("_copy_fit").write_comparison
     star = {"free": ["rotation", "flux", "z9"], "values": {"rotation": 0.5, "flux": 10.0,
             "z9": 1.0}, "errors": {"rotation": 0.1, "flux": 2.0, "z9": 1.0},
             "residual_rms_over_peak": 0.004, "chi2_dof": 2.5}

@@ -1,5 +1,5 @@
 """What mirrored.py and shifted.py share: write a changed copy of a manifest's FITS file
-into a new folder and fit it with the same manifest (only the file swapped)."""
+into a new folder, fit it with the same manifest (only the file swapped) and compare."""
 
 from __future__ import annotations
 
@@ -8,13 +8,29 @@ import shutil
 import sys
 from pathlib import Path
 
+import numpy as np
 
-def fit_copy(manifest: Path, out: Path, name: str, write_fits, description: str):
-    """Makes the new folder ``out`` (refused if it exists), writes ``out/name`` with
-    ``write_fits(source_fits_path, destination_path)``, ``out/manifest.json`` (the manifest
-    with that file) and runs ``difstar fit-image`` into ``out/fit``. Returns that fit's
-    ``result.json`` as a dict, or None (with a message) when ``out`` exists or the manifest
-    has more than one capture. On any failure removes ``out`` again (only what it made)."""
+
+def write_changed_fits(src: Path, dst: Path, change) -> None:
+    """Writes ``dst``: the image HDU of ``src`` that the fitter reads (``read_image``'s
+    ``hdu``), as ``change(data, header)`` returns it (a new array and astropy header)."""
+    from astropy.io import fits
+
+    from difstar.io import read_image
+
+    index = read_image(src).hdu
+    with fits.open(src) as hdul:
+        data, head = change(np.array(hdul[index].data), hdul[index].header.copy())
+    fits.PrimaryHDU(data, head).writeto(dst)
+
+
+def fit_copy(manifest: Path, out: Path, name: str, change, description: str):
+    """Makes the new folder ``out`` (refused if it exists), writes ``out/name`` (the
+    manifest's FITS file changed by ``change(data, header) -> (data, header)``: see
+    ``write_changed_fits``), ``out/manifest.json`` (the manifest with that file) and runs
+    ``difstar fit-image`` into ``out/fit``. Returns that fit's ``result.json`` as a dict,
+    or None (with a message) when ``out`` exists or the manifest has more than one
+    capture. On any failure removes ``out`` again (only what it made)."""
     from difstar._fit_image_cli import run
     from difstar._fitting import _resolve
 
@@ -28,7 +44,8 @@ def fit_copy(manifest: Path, out: Path, name: str, write_fits, description: str)
         print(f"{out} exists: give a new folder.", file=sys.stderr)
         return None
     try:
-        write_fits(Path(_resolve(man["data"]["path"], manifest.parent)), out / name)
+        write_changed_fits(Path(_resolve(man["data"]["path"], manifest.parent)), out / name,
+                           change)
         man["data"] = dict(man["data"], path=name)
         man["description"] = description + " " + man.get("description", "")
         (out / "manifest.json").write_text(json.dumps(man, indent=2) + "\n")

@@ -43,21 +43,17 @@ def odd_in_x(values) -> list[str]:
     return odd
 
 
-def mirrored_fits(src: Path, dst: Path) -> None:
+def mirrored(data, head):
     """The image with its columns reversed; CD1_1, CD2_1 negated and CRPIX1 moved so the
-    WCS still names each pixel's sky position (the pixel scale stays)."""
-    from astropy.io import fits
-
-    with fits.open(src) as hdul:
-        hdu = next(h for h in hdul if h.data is not None and h.data.ndim == 2)
-        head = hdu.header.copy()
-        data = np.ascontiguousarray(hdu.data[:, ::-1])
+    WCS still names each pixel's sky position (the pixel scale stays). A ``change`` for
+    ``_copy_fit.fit_copy``."""
+    data = np.ascontiguousarray(data[:, ::-1])
     for k in ("CD1_1", "CD2_1", "CDELT1"):
         if k in head:
             head[k] = -head[k]
     if "CRPIX1" in head:
         head["CRPIX1"] = data.shape[1] + 1 - head["CRPIX1"]
-    fits.PrimaryHDU(data, head).writeto(dst)
+    return data, head
 
 
 def main(argv=None) -> int:
@@ -69,7 +65,7 @@ def main(argv=None) -> int:
     from _copy_fit import fit_copy, write_comparison
 
     star = json.loads((Path(a.result) / "result.json").read_text())
-    got = fit_copy(Path(a.manifest), Path(a.out), "mirrored.fits", mirrored_fits,
+    got = fit_copy(Path(a.manifest), Path(a.out), "mirrored.fits", mirrored,
                    "The star's left-right mirror image.")
     if got is None:
         return 2

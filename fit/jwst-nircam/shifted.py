@@ -43,21 +43,15 @@ def shifted_image(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
     return np.asarray(Image.fromarray(a).resize((w, h), Image.LANCZOS, box=box))
 
 
-def shifted_fits(dx: float, dy: float):
-    """A ``write_fits(src, dst)`` for ``_copy_fit.fit_copy``: the moved image, CRPIX1 and
-    CRPIX2 moved by the same amounts."""
-    def write(src: Path, dst: Path) -> None:
-        from astropy.io import fits
-
-        with fits.open(src) as hdul:
-            hdu = next(h for h in hdul if h.data is not None and h.data.ndim == 2)
-            head = hdu.header.copy()
-            data = shifted_image(hdu.data, dx, dy)
+def shifted(dx: float, dy: float):
+    """A ``change(data, header)`` for ``_copy_fit.fit_copy``: the image moved by
+    ``shifted_image``, CRPIX1 and CRPIX2 moved by the same amounts."""
+    def change(data, head):
         for k, d in (("CRPIX1", dx), ("CRPIX2", dy)):
             if k in head:
                 head[k] = head[k] + d
-        fits.PrimaryHDU(data, head).writeto(dst)
-    return write
+        return shifted_image(data, dx, dy), head
+    return change
 
 
 def main(argv=None) -> int:
@@ -75,7 +69,7 @@ def main(argv=None) -> int:
     from _copy_fit import fit_copy, write_comparison
 
     star = json.loads((Path(a.result) / "result.json").read_text())
-    got = fit_copy(Path(a.manifest), Path(a.out), "shifted.fits", shifted_fits(dx, dy),
+    got = fit_copy(Path(a.manifest), Path(a.out), "shifted.fits", shifted(dx, dy),
                    f"The star moved by ({dx:g}, {dy:g}) px (Lanczos3).")
     if got is None:
         return 2
