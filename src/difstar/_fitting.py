@@ -452,6 +452,45 @@ def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, f
     return Noise(read, gain, floor), dataclasses.replace(data, sigma=sigma)
 
 
+def reject_outliers(data: FitData, model_image, centre, *, above=20.0, r_min=0.0,
+                    grow=1) -> tuple[FitData, int]:
+    """The data with the pixels no model of the star is meant to explain masked: a
+    neighbouring star, a cosmic ray, a hot or dead pixel. A pixel goes where
+    |data − model| > ``above`` · σ and it lies at least ``r_min`` pixels from ``centre``
+    (x, y in pixels from the top-left pixel's centre, rows down), then each such pixel's
+    square of ± ``grow`` pixels goes with it (the wings of a neighbour or a charge
+    spill), still only at ``r_min`` and beyond: the star's core, where the model's own
+    mismatch is largest, is always kept. Returns (the data, the number of pixels newly
+    masked). σ is the data's own: choose ``above`` well over the largest |residual| / σ
+    the model leaves on a clean star (on the JWST star, 10.6 beyond 12 px)."""
+    from scipy.ndimage import binary_dilation
+
+    def number(x, lo):
+        return (not isinstance(x, bool) and isinstance(x, (int, float))
+                and math.isfinite(x) and x >= lo)
+
+    if not (number(above, 0) and above > 0 and number(r_min, 0)
+            and isinstance(grow, int) and not isinstance(grow, bool) and grow >= 0):
+        raise FitInputError(f"reject: needs above > 0 (in σ), r_min >= 0 (pixels) and grow "
+                            f"a whole number >= 0 (pixels); got above={above!r}, "
+                            f"r_min={r_min!r}, grow={grow!r}.")
+    m = np.asarray(model_image, float)
+    if m.shape != data.image.shape:
+        raise FitInputError(f"reject: the model image's shape {m.shape} is not the data's "
+                            f"{data.image.shape}.")
+    z = np.where(data.mask, np.abs(data.image - m) / data.sigma, 0.0)
+    r, _ = _polar(data.image.shape, centre)
+    bad = z > above
+    if grow:
+        bad = binary_dilation(bad, structure=np.ones((2 * grow + 1,) * 2, bool))
+    bad &= data.mask & (r >= r_min)
+    if bad.all(where=data.mask):
+        raise FitInputError(f"reject: every used pixel is more than {above:g} σ from the "
+                            "model; the model is far from the data (reject later in the "
+                            "stages) or σ is too small.")
+    return dataclasses.replace(data, mask=data.mask & ~bad), int(bad.sum())
+
+
 def fainter_copy(data: FitData, model_image, background, factor, noise: Noise, *,
                  seed=0) -> FitData:
     """The data as a star ``factor`` times fainter would give them: (data − background)
@@ -1122,6 +1161,11 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
     - ``noise_from_residuals`` (options of :func:`noise_from_residuals`, e.g.
       ``{"floor": 0.03}``): before the stage, σ from read noise and gain estimated from
       the residual at the values reached, for this and later stages and the errors;
+    - ``reject`` (options of :func:`reject_outliers`, e.g. ``{"above": 20, "r_min": 12,
+      "grow": 1}``): before the stage (after ``noise_from_residuals``), mask the pixels
+      more than ``above`` σ from the model at the values reached, away from the core (a
+      neighbouring star, a cosmic ray, a hot pixel), for this and later stages; the
+      number masked is logged;
     - ``scan`` (``{"name": "rotation", "half_range": 5, "step": 0.2}``): first move that
       parameter to the lowest χ² on a grid, then solve;
     - ``max_steps``, ``rtol``: the solver's limits (default: the arguments);
@@ -1146,6 +1190,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
       pass leaves wherever its start put it along a long, flat valley. Not settled after
       ``max_rounds``: a warning in the result.
 
+    A stage with a key or an option not listed here is refused before any fitting.
     Each stage starts from the last one's values. Standard errors are computed at the
     end for every free parameter on the pixels; those of parameters last fitted in a
     spikes stage come from that stage. Default: one stage, all free, whole image.
@@ -1205,6 +1250,21 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
                 for nz in noises:
                     print(f"stage {si}: noise from the residuals: read {nz['read']:.4g}, "
                           f"gain {nz['gain']:.4g}, floor {nz['floor']:g}", flush=True)
+        if st.get("reject") is not None:
+            mimgs = model_images(model, values, datas)
+            counts = []
+            for i, mi in enumerate(mimgs):
+                h, w = datas[i].image.shape
+                cv = model.capture_values(values, i)
+                datas[i], n = reject_outliers(datas[i], np.asarray(mi),
+                                              (w // 2 + cv["x0"], h // 2 + cv["y0"]),
+                                              **dict(st["reject"]))
+                counts.append(n)
+            log.append({"stage": si, "rejected": counts[0] if n_cap == 1 else counts})
+            if verbose:
+                print(f"stage {si}: rejected {counts[0] if n_cap == 1 else counts} pixels "
+                      f"more than {st['reject'].get('above', 20.0):g} σ from the model",
+                      flush=True)
         half = st.get("half")
         ds = [d if half is None else d.cropped(int(half)) for d in datas]
         if st.get("annulus") is not None:
@@ -1265,13 +1325,14 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
                 if stages[sj].get("hop") is None and stages[sj].get("repeat") is None]
 
     def rerun(which, v, datas):
-        """Re-run the stages ``which`` from ``v`` with σ as it is (their own
-        noise_from_residuals left out, so that what is compared has one yardstick):
-        (values, (status, ok, steps), datas)."""
+        """Re-run the stages ``which`` from ``v`` with σ and the pixels as they are
+        (their own noise_from_residuals and reject left out, so that what is compared
+        has one yardstick): (values, (status, ok, steps), datas)."""
         ds = list(datas)
         st_j, ok_j, n_j = status, ok, steps
         for sj in which:
-            again = {q: x for q, x in stages[sj].items() if q != "noise_from_residuals"}
+            again = {q: x for q, x in stages[sj].items()
+                     if q not in ("noise_from_residuals", "reject")}
             v, st_j, ok_j, n_j, ds = run_stage(sj, again, v, ds)
         return v, (st_j, ok_j, n_j), ds
 
@@ -1370,6 +1431,8 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         _, values, datas, (status, ok, steps), spike_errors = best
         return values, datas
 
+    for si, st in enumerate(stages):  # a stage's mistakes are found before any fitting
+        _check_stage_keys(si, st)
     # a repeat's mistakes are found before any fitting: (stages, until, max_rounds)
     repeats = {si: _check_repeat(model, si, st["repeat"], len(solving_before(si)))
                for si, st in enumerate(stages) if st.get("repeat") is not None}
@@ -1397,6 +1460,56 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
                      model_image=one(mimgs), residual=one(resids),
                      data=one([d.image for d in datas]), mask=one([d.mask for d in datas]),
                      warnings=notes + msgs, wall_time=time.perf_counter() - t0, stages=log)
+
+
+def _keyword_names(fn, leave_out=()) -> frozenset:
+    """The keyword-only arguments of ``fn``: the options a stage may give it."""
+    import inspect
+
+    return frozenset(q for q, p in inspect.signature(fn).parameters.items()
+                     if p.kind is p.KEYWORD_ONLY and q not in leave_out)
+
+
+def _stage_options() -> dict:
+    """A solving stage's keys, each with the options it takes (None: a value, not a
+    mapping of options). Hop and repeat stages are only ``hop`` or only ``repeat``."""
+    return {"free": None, "fix": None, "set": None, "half": None, "annulus": None,
+            "max_steps": None, "rtol": None,
+            "spikes": _keyword_names(spike_target, ("model_image",)),
+            "noise_from_residuals": _keyword_names(noise_from_residuals),
+            "reject": _keyword_names(reject_outliers),
+            "scan": _keyword_names(_scan)}
+
+
+def _check_stage_keys(si: int, st: Any) -> None:
+    """Refuses a stage with a key, or an option, that the fit does not know (a typo
+    would otherwise be passed over in silence), naming the known ones."""
+    if not isinstance(st, Mapping):
+        raise FitInputError(f"fit: stage {si} must be a mapping (e.g. {{'free': 'all'}}); "
+                            f"got {st!r}.")
+    for only in ("hop", "repeat"):
+        if only in st and set(st) != {only}:
+            raise FitInputError(f"fit: stage {si} is a {only} stage and takes no other key; "
+                                f"got {sorted(set(st) - {only})}. Put them in a stage of "
+                                "their own.")
+    if "hop" in st or "repeat" in st:
+        return
+    known = _stage_options()
+    bad = sorted(set(st) - set(known))
+    if bad:
+        raise FitInputError(f"fit: stage {si}: unknown keys {bad}; a stage takes "
+                            f"{sorted(known)}, or is only 'hop' or only 'repeat'.")
+    for key, opts in known.items():
+        given = st.get(key)
+        if opts is None or given is None:
+            continue
+        if not isinstance(given, Mapping):
+            raise FitInputError(f"fit: stage {si}: {key} must be a mapping of options "
+                                f"({sorted(opts)}); got {given!r}.")
+        bad = sorted(set(given) - opts)
+        if bad:
+            raise FitInputError(f"fit: stage {si}: {key} has unknown options {bad}; "
+                                f"known: {sorted(opts)}.")
 
 
 def _check_repeat(model: ImageModel, si: int, r: Any, n_solving: int) -> tuple:
