@@ -105,3 +105,29 @@ def test_write_comparison_rows(tmp_path, capsys):
     assert rows[0][2:] == ["-0.5", "-0.45", "+0.05", "+0.500 |"]
     assert rows[1][2:] == ["10", "11", "+1", "+0.500 |"]
     assert "0.400 %, copy 0.500 %" in path.read_text() and "| rotation" in capsys.readouterr().out
+
+
+def test_contaminated_image_adds_the_neighbour_and_the_hits():
+    """The neighbour is the star (less the border's median), FACTOR times fainter, moved
+    by whole pixels (exact, 0 beyond the border); the hits land at least 15 px from the
+    star within 0.3–10 % of its peak (plus a track's second pixel); NaN stays NaN; the
+    input is unchanged."""
+    mod = _script("contaminated")
+    img = 5.0 + 100.0 * _gaussian((61, 61), 30.0, 30.0)
+    img[0, 0] = np.nan
+    before = img.copy()
+    calm = mod.contaminated_image(img, neighbour=(12, -7, 20.0), hits=0)
+    np.testing.assert_array_equal(img, before)
+    star = np.nan_to_num(img - 5.0)
+    want = np.zeros_like(star)
+    want[:-7, 12:] = star[7:, :-12] / 20.0  # out[r, c] = star[r + 7, c − 12] / 20
+    assert np.isnan(calm[0, 0])
+    np.testing.assert_allclose(np.nan_to_num(calm - img), want, rtol=0, atol=1e-12)
+    hit = mod.contaminated_image(img, neighbour=(12, -7, 20.0), hits=8, seed=4) - calm
+    hit = np.nan_to_num(hit)
+    rr, cc = np.nonzero(hit > 1e-9)
+    assert 8 <= len(rr) <= 16
+    assert np.hypot(rr - 30, cc - 30).min() >= 15 - 1.5  # a track's second pixel: ≤ 1.5 px on
+    levels = np.sort(hit[rr, cc])[::-1]  # the star's peak is 100
+    assert levels[0] <= 2 * 10.0  # at most 10 % each (two hits could share a pixel)
+    assert levels[7] >= 0.3 and levels[-1] >= 0.3 * 0.3  # 0.3 % each; a track's 2nd ≥ 30 %

@@ -70,6 +70,10 @@ def test_manifest_validates_against_the_schema(bracket):
     assert variants
     for path in variants:
         jsonschema.validate(json.loads(path.read_text()), schema)
+    typo = json.loads(bracket.read_text())
+    typo["stages"][0]["noise_from_residual"] = {"floor": 0.03}  # the fit refuses it too
+    with pytest.raises(jsonschema.ValidationError, match="noise_from_residual"):
+        jsonschema.validate(typo, schema)
 
 
 @pytest.mark.slow

@@ -453,7 +453,7 @@ def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, f
 
 
 def reject_outliers(data: FitData, model_image, centre, *, above=20.0, r_min=0.0,
-                    grow=1) -> tuple[FitData, int]:
+                    grow=1) -> tuple[FitData, int, float]:
     """The data with the pixels no model of the star is meant to explain masked: a
     neighbouring star, a cosmic ray, a hot or dead pixel. A pixel goes where
     |data − model| > ``above`` · σ and it lies at least ``r_min`` pixels from ``centre``
@@ -461,8 +461,9 @@ def reject_outliers(data: FitData, model_image, centre, *, above=20.0, r_min=0.0
     square of ± ``grow`` pixels goes with it (the wings of a neighbour or a charge
     spill), still only at ``r_min`` and beyond: the star's core, where the model's own
     mismatch is largest, is always kept. Returns (the data, the number of pixels newly
-    masked). σ is the data's own: choose ``above`` well over the largest |residual| / σ
-    the model leaves on a clean star (on the JWST star, 10.6 beyond 12 px)."""
+    masked, the largest |data − model| / σ left at ``r_min`` and beyond). σ is the
+    data's own: choose ``above`` well over the largest |residual| / σ the model leaves
+    on a clean star (that last number, on a clean star)."""
     from scipy.ndimage import binary_dilation
 
     def number(x, lo):
@@ -488,7 +489,9 @@ def reject_outliers(data: FitData, model_image, centre, *, above=20.0, r_min=0.0
         raise FitInputError(f"reject: every used pixel is more than {above:g} σ from the "
                             "model; the model is far from the data (reject later in the "
                             "stages) or σ is too small.")
-    return dataclasses.replace(data, mask=data.mask & ~bad), int(bad.sum())
+    kept = data.mask & ~bad & (r >= r_min)
+    largest = float(z[kept].max()) if kept.any() else 0.0
+    return dataclasses.replace(data, mask=data.mask & ~bad), int(bad.sum()), largest
 
 
 def fainter_copy(data: FitData, model_image, background, factor, noise: Noise, *,
@@ -1252,19 +1255,21 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
                           f"gain {nz['gain']:.4g}, floor {nz['floor']:g}", flush=True)
         if st.get("reject") is not None:
             mimgs = model_images(model, values, datas)
-            counts = []
+            counts, largest = [], []
             for i, mi in enumerate(mimgs):
                 h, w = datas[i].image.shape
                 cv = model.capture_values(values, i)
-                datas[i], n = reject_outliers(datas[i], np.asarray(mi),
-                                              (w // 2 + cv["x0"], h // 2 + cv["y0"]),
-                                              **dict(st["reject"]))
+                datas[i], n, z = reject_outliers(datas[i], np.asarray(mi),
+                                                 (w // 2 + cv["x0"], h // 2 + cv["y0"]),
+                                                 **dict(st["reject"]))
                 counts.append(n)
-            log.append({"stage": si, "rejected": counts[0] if n_cap == 1 else counts})
+                largest.append(z)
+            log.append({"stage": si, "rejected": counts[0] if n_cap == 1 else counts,
+                        "largest_kept": largest[0] if n_cap == 1 else largest})
             if verbose:
                 print(f"stage {si}: rejected {counts[0] if n_cap == 1 else counts} pixels "
-                      f"more than {st['reject'].get('above', 20.0):g} σ from the model",
-                      flush=True)
+                      f"more than {st['reject'].get('above', 20.0):g} σ from the model; "
+                      f"the largest kept: {max(largest):.3g} σ", flush=True)
         half = st.get("half")
         ds = [d if half is None else d.cropped(int(half)) for d in datas]
         if st.get("annulus") is not None:
