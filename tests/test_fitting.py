@@ -889,7 +889,7 @@ def test_reject_outliers_masks_what_the_model_cannot_explain():
     data = FitData.from_array(noisy, sigma=sigma)
     before = (data.image.copy(), data.mask.copy(), data.sigma.copy())
     centre = (20 + TRUE["x0"], 20 + TRUE["y0"])  # x0 columns right, y0 rows down
-    out, n, largest = reject_outliers(data, clean, centre, above=20, r_min=5, grow=1)
+    out, n, largest = reject_outliers(data, clean, 0.0, centre, above=20, r_min=5, grow=1)
     want = np.zeros(clean.shape, bool)
     want[4:7, 29:32] = True
     want[32:36, 7:11] = True
@@ -903,14 +903,27 @@ def test_reject_outliers_masks_what_the_model_cannot_explain():
     assert np.array_equal(out.image, data.image) and np.array_equal(out.sigma, data.sigma)
     # nothing more than ``above`` σ away beyond r_min: nothing masked
     _, n, largest = reject_outliers(FitData.from_array(clean + 1e-9, sigma=sigma), clean,
-                                    centre, above=20, r_min=5)
+                                    0.0, centre, above=20, r_min=5)
     assert n == 0 and largest == pytest.approx(1e-9 / sigma)
+    # ``relative``: σ at least that fraction of the peak, so a star 10 times brighter
+    # with the same noise loses the same pixels (on its own σ, its noise would go too)
+    bright = FitData.from_array(10 * noisy, sigma=sigma)
+    opts = {"above": 5, "r_min": 5, "grow": 0, "relative": 0.02}
+    faint_mask = reject_outliers(data, clean, TRUE["background"], centre, **opts)[0].mask
+    bright_mask = reject_outliers(bright, 10 * clean, 10 * TRUE["background"], centre,
+                                  **opts)[0].mask
+    assert np.array_equal(faint_mask, bright_mask)
+    assert not faint_mask[5, 30] and not faint_mask[33:35, 8:10].any()
+    assert faint_mask.sum() >= data.mask.sum() - 10  # the hot pixel, the neighbour: 5
+    own = reject_outliers(bright, 10 * clean, 10 * TRUE["background"], centre, above=20,
+                          r_min=5, grow=0)[0].mask
+    assert (~own).sum() > 3 * (~faint_mask).sum()  # its own σ: noise pixels go too
     for bad in ({"above": 0}, {"above": float("nan")}, {"r_min": -1}, {"grow": 1.5},
-                {"grow": True}, {"above": "20"}):
+                {"grow": True}, {"above": "20"}, {"relative": 0}, {"relative": 1.5}):
         with pytest.raises(FitInputError, match="reject: needs above"):
-            reject_outliers(data, clean, centre, **bad)
+            reject_outliers(data, clean, 0.0, centre, **bad)
     with pytest.raises(FitInputError, match="shape"):
-        reject_outliers(data, clean[:-1], centre)
+        reject_outliers(data, clean[:-1], 0.0, centre)
 
 
 def test_reject_stage_keeps_a_neighbour_out_of_the_fit():
@@ -951,7 +964,10 @@ def test_stage_keys_and_options_are_checked_before_any_fitting(synthetic):
             ({"free": "all", "reject": {"abvoe": 20}}, "reject has unknown options"),
             ({"free": "all", "spikes": {"rmin": 12}}, "spikes has unknown options"),
             ({"free": "all", "scan": ["rotation"]}, "scan must be a mapping"),
-            ({"hop": {"name": "rotation", "offsets": [1]}, "free": "all"}, "hop stage"),
-            ("all", "must be a mapping")):
+            ({"hop": {"name": "rotation", "offsets": [1]}, "free": "all"}, "hop stage")):
         with pytest.raises(FitInputError, match=match):
             fit(_model(), data, stages=[{"free": "all", "max_steps": 1}, stage])
+    from difstar._fitting import _check_stage_keys  # from a manifest: any JSON value
+
+    with pytest.raises(FitInputError, match="stage 1 must be a mapping"):
+        _check_stage_keys(1, "all")

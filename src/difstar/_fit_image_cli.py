@@ -52,11 +52,13 @@ def _figure(res, path, title):
             a.set_title(name + cap)
         fig.colorbar(im, ax=ax[:2], shrink=0.85, label="counts (log)")
         lin = peak * 1e-3
-        im2 = ax[2].imshow(np.where(mask, resid, 0.0) / peak, cmap="RdBu_r",
+        grey = plt.get_cmap("RdBu_r").with_extremes(bad="0.6")  # pixels not fitted
+        im2 = ax[2].imshow(np.where(mask, resid, np.nan) / peak, cmap=grey,
                            norm=SymLogNorm(linthresh=lin / peak, vmin=-0.1, vmax=0.1, base=10),
                            origin="upper")
         rms = float(np.sqrt(np.mean(resid[mask] ** 2)) / peak)
-        ax[2].set_title(f"residual / peak (RMS {100 * rms:.2f} %)")
+        ax[2].set_title(f"residual / peak (RMS {100 * rms:.2f} %)"
+                        + ("; grey: not fitted" if not mask.all() else ""))
         fig.colorbar(im2, ax=ax[2], shrink=0.85, label="(data − model) / peak, symlog")
         for a in ax:
             a.set_xticks([])

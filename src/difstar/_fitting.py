@@ -452,8 +452,8 @@ def noise_from_residuals(data: FitData, model_image, background, *, floor=0.0, f
     return Noise(read, gain, floor), dataclasses.replace(data, sigma=sigma)
 
 
-def reject_outliers(data: FitData, model_image, centre, *, above=20.0, r_min=0.0,
-                    grow=1) -> tuple[FitData, int, float]:
+def reject_outliers(data: FitData, model_image, background, centre, *, above=20.0,
+                    r_min=0.0, grow=1, relative=None) -> tuple[FitData, int, float]:
     """The data with the pixels no model of the star is meant to explain masked: a
     neighbouring star, a cosmic ray, a hot or dead pixel. A pixel goes where
     |data − model| > ``above`` · σ and it lies at least ``r_min`` pixels from ``centre``
@@ -463,7 +463,13 @@ def reject_outliers(data: FitData, model_image, centre, *, above=20.0, r_min=0.0
     mismatch is largest, is always kept. Returns (the data, the number of pixels newly
     masked, the largest |data − model| / σ left at ``r_min`` and beyond). σ is the
     data's own: choose ``above`` well over the largest |residual| / σ the model leaves
-    on a clean star (that last number, on a clean star)."""
+    on a clean star (that last number, on a clean star).
+
+    ``relative`` (a fraction of the peak, e.g. 3e-4): σ is at least ``relative`` · P, P
+    the brightest of the data's own intensity above ``background`` (as in
+    :func:`noise_from_residuals`): the model's mismatch scales with the star, so on the
+    star's own noise a brighter star would have its spikes' mismatch masked; with this
+    floor the same pixels go for a bright or a faint star of one kind."""
     from scipy.ndimage import binary_dilation
 
     def number(x, lo):
@@ -471,15 +477,20 @@ def reject_outliers(data: FitData, model_image, centre, *, above=20.0, r_min=0.0
                 and math.isfinite(x) and x >= lo)
 
     if not (number(above, 0) and above > 0 and number(r_min, 0)
-            and isinstance(grow, int) and not isinstance(grow, bool) and grow >= 0):
-        raise FitInputError(f"reject: needs above > 0 (in σ), r_min >= 0 (pixels) and grow "
-                            f"a whole number >= 0 (pixels); got above={above!r}, "
-                            f"r_min={r_min!r}, grow={grow!r}.")
+            and isinstance(grow, int) and not isinstance(grow, bool) and grow >= 0
+            and (relative is None or number(relative, 0) and 0 < relative < 1)):
+        raise FitInputError(f"reject: needs above > 0 (in σ), r_min >= 0 (pixels), grow "
+                            f"a whole number >= 0 (pixels) and relative, if given, a "
+                            f"fraction of the peak (0 < relative < 1); got above={above!r}, "
+                            f"r_min={r_min!r}, grow={grow!r}, relative={relative!r}.")
     m = np.asarray(model_image, float)
     if m.shape != data.image.shape:
         raise FitInputError(f"reject: the model image's shape {m.shape} is not the data's "
                             f"{data.image.shape}.")
-    z = np.where(data.mask, np.abs(data.image - m) / data.sigma, 0.0)
+    sigma = data.sigma
+    if relative is not None:
+        sigma = np.maximum(sigma, relative * data_intensity(data, background)[data.mask].max())
+    z = np.where(data.mask, np.abs(data.image - m) / sigma, 0.0)
     r, _ = _polar(data.image.shape, centre)
     bad = z > above
     if grow:
@@ -1165,10 +1176,10 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
       ``{"floor": 0.03}``): before the stage, σ from read noise and gain estimated from
       the residual at the values reached, for this and later stages and the errors;
     - ``reject`` (options of :func:`reject_outliers`, e.g. ``{"above": 20, "r_min": 12,
-      "grow": 1}``): before the stage (after ``noise_from_residuals``), mask the pixels
-      more than ``above`` σ from the model at the values reached, away from the core (a
-      neighbouring star, a cosmic ray, a hot pixel), for this and later stages; the
-      number masked is logged;
+      "grow": 2, "relative": 3e-4}``): before the stage (after ``noise_from_residuals``),
+      mask the pixels more than ``above`` σ from the model at the values reached, away
+      from the core (a neighbouring star, a cosmic ray, a hot pixel), for this and later
+      stages; the number masked and the largest |residual| / σ kept are logged;
     - ``scan`` (``{"name": "rotation", "half_range": 5, "step": 0.2}``): first move that
       parameter to the lowest χ² on a grid, then solve;
     - ``max_steps``, ``rtol``: the solver's limits (default: the arguments);
@@ -1259,7 +1270,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
             for i, mi in enumerate(mimgs):
                 h, w = datas[i].image.shape
                 cv = model.capture_values(values, i)
-                datas[i], n, z = reject_outliers(datas[i], np.asarray(mi),
+                datas[i], n, z = reject_outliers(datas[i], np.asarray(mi), cv["background"],
                                                  (w // 2 + cv["x0"], h // 2 + cv["y0"]),
                                                  **dict(st["reject"]))
                 counts.append(n)
