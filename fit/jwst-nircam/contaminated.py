@@ -9,8 +9,9 @@ the rotation toward it. This adds to the star's own file
 
 - a neighbour: the star itself (its image less the border's median), ``FACTOR`` times
   fainter, moved by whole pixels (``DX`` along the columns, ``DY`` along the rows of
-  the array; no resampling), so it has real spikes and real noise; the default puts
-  its core on the star's spike at 30°, 30 px out;
+  the FITS array, the file's own order; no resampling), so it has real spikes and real
+  noise; the default puts its core on the star's spike at 150° (counter-clockwise from
+  +x, y up), 30 px out;
 - ``--hits`` hot pixels and two-pixel cosmic-ray tracks at random places at least 15 px
   from the star, each between 0.3 % and 10 % of the star's peak (``--seed``),
 
