@@ -24,6 +24,7 @@ from difstar._fitting import (
     fit,
     iris_pupil,
     load_manifest,
+    noise_limited_errors,
     obstructed_circle_pupil,
     spike_angles,
 )
@@ -971,3 +972,103 @@ def test_stage_keys_and_options_are_checked_before_any_fitting(synthetic):
 
     with pytest.raises(FitInputError, match="stage 1 must be a mapping"):
         _check_stage_keys(1, "all")
+
+
+@pytest.mark.parametrize("a", [2, 3])
+def test_lanczos_transfer_is_the_mean_of_resamplings(a):
+    """A co-add of frames taken at sub-pixel offsets u, each resampled back onto one grid
+    with a Lanczos kernel (SWarp's RESAMPT = LANCZOS3), is on average the frame
+    convolved with the continuous kernel. A Gaussian star at 64 offsets, resampled and
+    averaged, against the FFT of the unmoved star times lanczos_transfer:
+    - a = 2, the plain taps summed directly (out[n] = Σ in[k] L(n + u − k)), divided by
+      the kernel's integral from scipy's quad: to 1e-7 of the peak (the star, σ = 2 px,
+      has 3e-9 of its spectrum left at the Nyquist frequency);
+    - a = 3, Pillow's own Lanczos resampling, which normalises its taps at each offset
+      (their sum departs from 1 by up to 0.6 %): to 1e-4 of the peak."""
+    from PIL import Image
+    from scipy.integrate import quad
+
+    from difstar._fitting import lanczos_kernel, lanczos_transfer
+
+    h = w = 41
+    c, s = 20.0, 2.0
+    yy, xx = np.mgrid[0:h, 0:w]
+
+    def star(dx, dy):
+        return np.exp(-0.5 * ((xx - c - dx) ** 2 + (yy - c - dy) ** 2) / s**2)
+
+    offsets = [(u, (7 * u) % 1.0) for u in np.arange(64) / 64]
+    frames = []
+    for ux, uy in offsets:
+        img = star(ux, uy)  # the frame: the star at an offset u
+        if a == 3:  # Pillow: output pixel n reads input n + u (the box stays inside)
+            box = (ux, uy, w - 1 + ux, h - 1 + uy)
+            out = Image.fromarray(img.astype(np.float32)).resize((w - 1, h - 1),
+                                                                 Image.LANCZOS, box=box)
+            frames.append(np.asarray(out, float))
+        else:
+            k = np.arange(w)
+            tx = lanczos_kernel(k[:, None] + ux - k[None, :], a)
+            ty = lanczos_kernel(k[:, None] + uy - k[None, :], a)
+            frames.append(ty @ img @ tx.T)
+    mean = np.mean(frames, axis=0)
+    fy = np.fft.fftfreq(h)[:, None]
+    fx = np.fft.rfftfreq(w)[None, :]
+    pred = np.fft.irfft2(np.fft.rfft2(star(0, 0)) * lanczos_transfer(fx, a)
+                         * lanczos_transfer(fy, a), s=(h, w))
+    if a == 3:
+        err, tol = np.abs(mean - pred[:-1, :-1]).max(), 1e-4
+    else:
+        area = quad(lambda x: np.sinc(x) * np.sinc(x / a), -a, a, epsabs=1e-13)[0]
+        err, tol = np.abs(mean / area**2 - pred).max(), 1e-7
+    assert err < tol
+    assert lanczos_transfer(np.array(0.0), a) == pytest.approx(1.0, abs=1e-12)
+    # the blur is real: the mean differs from the unmoved star by far more
+    assert np.abs(mean[:h - 1, :w - 1] - star(0, 0)[:h - 1, :w - 1]).max() > 20 * tol
+
+
+def test_resampling_option_is_checked_and_blurs_the_model():
+    """``resampling`` takes null or 'lanczos2' … 'lanczos5' (a clear error otherwise) and
+    multiplies the model's spectrum by the kernel's transfer: the flux stays, the peak
+    drops."""
+    with pytest.raises(FitInputError, match="resampling"):
+        ImageModel(obstructed_circle_pupil(), {}, light=Light.monochromatic(3.6e-6),
+                   resampling="bicubic")
+    kw = dict(light=Light.monochromatic(3.6e-6), pad=8)
+    params = {"pixel_scale": 0.6, "flux": 1.0}
+    plain = ImageModel(obstructed_circle_pupil(), params, **kw)((33, 33))
+    lz = ImageModel(obstructed_circle_pupil(), params, resampling="LANCZOS3", **kw)((33, 33))
+    assert lz.sum() == pytest.approx(plain.sum(), rel=1e-3)
+    assert lz.max() < plain.max()
+
+
+def test_noise_limited_errors_match_weighted_linear_least_squares(synthetic):
+    """With only ``flux`` and ``background`` free the model is linear in them, so the
+    Cramér–Rao errors are those of weighted linear least squares on the columns
+    (unit-flux image, 1): NumPy's normal equations on the model image, against the
+    Jacobian by jax.jacfwd, to 1e-9 relative, for two σ maps and a mask. Background
+    alone: 1 / √Σ σ⁻², exactly. A bad σ is refused, naming it."""
+    data, sigma = synthetic
+    model = _model(rotation=Param(0.0), x0=Param(0.0), y0=Param(0.0))
+    vals = model.values() | {"flux": 800.0, "background": 0.3}
+    mask = np.ones(data.image.shape, bool)
+    mask[:3] = False
+    d = dataclasses.replace(data, mask=mask)
+    unit = model(d.image.shape, {"flux": 1.0, "background": 0.0})
+    s1 = np.full(d.image.shape, sigma)
+    s2 = sigma * (1 + np.sqrt(np.abs(unit) * 800 / sigma))
+    got = noise_limited_errors(model, d, vals, [s1, s2])
+    for s, e in zip([s1, s2], got):
+        a = np.stack([unit[mask], np.ones(mask.sum())], axis=1) / s[mask][:, None]
+        ref = np.sqrt(np.diag(np.linalg.inv(a.T @ a)))
+        assert e["flux"] == pytest.approx(ref[0], rel=1e-9)
+        assert e["background"] == pytest.approx(ref[1], rel=1e-9)
+    bg_only = _model(rotation=Param(0.0), x0=Param(0.0), y0=Param(0.0), flux=Param(800.0))
+    (e,) = noise_limited_errors(bg_only, d, vals, [s2])
+    assert e["background"] == pytest.approx(1 / np.sqrt(np.sum(s2[mask] ** -2.0)), rel=1e-12)
+    bad = s1.copy()
+    bad[10, 10] = np.nan
+    with pytest.raises(FitInputError, match=r"sigmas\[1\]"):
+        noise_limited_errors(model, d, vals, [s1, bad])
+    with pytest.raises(FitInputError, match="shape"):
+        noise_limited_errors(model, d, vals, [s1[:5]])

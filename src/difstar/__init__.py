@@ -114,6 +114,7 @@ from ._fitting import jwst_pupil as jwst_pupil
 from ._fitting import load_manifest as load_fit_manifest
 from ._fitting import model_images as model_images
 from ._fitting import noise_from_residuals as noise_from_residuals
+from ._fitting import noise_limited_errors as noise_limited_errors
 from ._fitting import obstructed_circle_pupil as obstructed_circle_pupil
 from ._fitting import reject_outliers as reject_outliers
 from ._fitting import spike_angles as spike_angles

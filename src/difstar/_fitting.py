@@ -37,6 +37,7 @@ from __future__ import annotations
 import dataclasses
 import gc
 import math
+import re
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -592,6 +593,46 @@ def disc_transform(x):
     return jnp.where(x < 8.0, small, big)
 
 
+def _resampling_order(resampling) -> int:
+    """``None`` (no resampling modelled) → 0; ``"lanczos<a>"`` (a = 2 … 5) → a."""
+    if resampling is None:
+        return 0
+    m = re.fullmatch(r"lanczos([2-5])", str(resampling).lower())
+    if m is None:
+        raise FitInputError(f"ImageModel: resampling must be null or 'lanczos2' … "
+                            f"'lanczos5' (the kernel that resampled the data, e.g. SWarp's "
+                            f"RESAMPT1 = LANCZOS3); got {resampling!r}.")
+    return int(m.group(1))
+
+
+def lanczos_kernel(x, a: int):
+    """The Lanczos-``a`` interpolation kernel sinc(x)·sinc(x/a) for |x| < a, else 0."""
+    x = np.asarray(x, float)
+    return np.where(np.abs(x) < a, np.sinc(x) * np.sinc(x / a), 0.0)
+
+
+def lanczos_transfer(f, a: int, n: int = 4001):
+    """The transfer function (Fourier transform, unit at f = 0) of the continuous
+    Lanczos-``a`` kernel at frequencies ``f`` (cycles per data pixel).
+
+    Why a resampled image sees it: a frame sampled at an offset u and interpolated
+    onto the output grid with kernel L gives out(x) = Σ_k g(k + u) L(x − k − u); averaged
+    over offsets u spread evenly over a pixel this is ∫ g(t) L(x − t) dt, the
+    convolution of the pixel-integrated PSF g with L. A co-add of many frames at
+    random sub-pixel offsets (SWarp's RESAMPT = LANCZOS3, combined by mean or median)
+    is blurred by L on average; the separable 2-D kernel is L(x) L(y).
+    Composite Simpson's rule over [−a, a] with ``n`` (odd) nodes: the kernel is smooth
+    and compact, so 4001 nodes give the transfer to about 1e-12."""
+    x = np.linspace(-a, a, n)
+    w = np.ones(n)
+    w[1:-1:2], w[2:-1:2] = 4.0, 2.0
+    w *= (x[1] - x[0]) / 3.0
+    k = lanczos_kernel(x, a) * w
+    f = np.asarray(f, float)
+    h = np.cos(2 * np.pi * f[..., None] * x) @ k
+    return h / k.sum()
+
+
 def image_distortion(shear, aspect):
     """The image-plane linear map D = [[1, 0], [shear, 1 + aspect]] (x right, y up): the
     data's y axis keeps its direction (so ``rotation`` is read against it), a direction
@@ -627,8 +668,9 @@ class ImageModel:
     def __init__(self, pupil: PupilBuilder, params: Mapping[str, Any], *, light: Light,
                  zernike: Sequence[int] = (), oversample: float = 1.0, pad: int = 8,
                  accuracy: float = 1e-2, max_shift: float = 4.0, source: Any = "point",
-                 response: bool = False):
+                 response: bool = False, resampling: str | None = None):
         self.pupil = pupil
+        self.resampling = _resampling_order(resampling)
         self.source = _source_kind(source)
         self.response = bool(response)
         self.light = light
@@ -806,6 +848,9 @@ class ImageModel:
                        + v["halo"] * jnp.exp(-2 * math.pi**2 * v["halo_width"] ** 2 * f2))
         if o != 1.0:
             kern = kern * jnp.asarray(np.sinc(o * fx) * np.sinc(o * fy))
+        if self.resampling:
+            a = self.resampling
+            kern = kern * jnp.asarray(lanczos_transfer(fx, a) * lanczos_transfer(fy, a))
         if isinstance(self.source, str) and self.source == "disc":
             kern = kern * disc_transform(2 * math.pi * np.sqrt(f2) * v["source_radius"])
         elif not isinstance(self.source, str):
@@ -1096,11 +1141,9 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     return vals, status, ok, sol.steps
 
 
-def _errors(model: ImageModel, data, values: Mapping[str, float], target=None):
-    """Gauss–Newton covariance in the physical parameters at ``values``, scaled by
-    χ²/dof when that exceeds 1 (always, for spike profiles: their σ are relative)."""
-    if target is None:
-        target = [_PixelTarget(d) for d in _as_list(data)]
+def _jacobian(model: ImageModel, data, values: Mapping[str, float], target):
+    """The residual's Jacobian over the free parameters (physical units) at ``values``,
+    the residual and the model images."""
     free = model.free
     base = {k: jnp.asarray(v, float) for k, v in values.items()}
     resv = _residual_fn(model, data, target)
@@ -1114,20 +1157,36 @@ def _errors(model: ImageModel, data, values: Mapping[str, float], target=None):
     x0 = jnp.asarray([values[k] for k in free], float)
     jac = np.asarray(jax.jit(jax.jacfwd(lambda x: res(x)[0]))(x0))
     r, m = jax.jit(res)(x0)
-    r, m = np.asarray(r), [np.asarray(mi) for mi in m]
+    return jac, np.asarray(r), [np.asarray(mi) for mi in m]
+
+
+def _covariance(jac):
+    """(JᵀJ)⁻¹ by a pseudo-inverse of the column-scaled normal matrix, and the columns'
+    norms (0: a parameter the model does not depend on)."""
+    jtj = jac.T @ jac
+    colnorm = np.sqrt(np.diag(jtj))
+    dscale = np.where(colnorm > 0, 1.0 / np.where(colnorm > 0, colnorm, 1.0), 0.0)
+    cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * jtj * dscale[None, :],
+                                           rcond=1e-12) * dscale[None, :]
+    return cov, colnorm
+
+
+def _errors(model: ImageModel, data, values: Mapping[str, float], target=None):
+    """Gauss–Newton covariance in the physical parameters at ``values``, scaled by
+    χ²/dof when that exceeds 1 (always, for spike profiles: their σ are relative)."""
+    if target is None:
+        target = [_PixelTarget(d) for d in _as_list(data)]
+    free = model.free
+    jac, r, m = _jacobian(model, data, values, target)
     chi2 = float(r @ r)
     dof = sum(t.n for t in _as_list(target)) - len(free)
     kinds = {t.kind for t in _as_list(target)}
-    jtj = jac.T @ jac
-    colnorm = np.sqrt(np.diag(jtj))
+    cov, colnorm = _covariance(jac)
     msgs = []
     for k, c in zip(free, colnorm):
         if not c > 1e-12 * max(colnorm.max(), 1e-300):
             msgs.append(f"{k}: unconstrained (the model does not depend on it: zero "
                         "Jacobian column); fix it.")
-    dscale = np.where(colnorm > 0, 1.0 / np.where(colnorm > 0, colnorm, 1.0), 0.0)
-    cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * jtj * dscale[None, :],
-                                           rcond=1e-12) * dscale[None, :]
     red = chi2 / max(dof, 1)
     cov = cov * (max(red, 1.0) if kinds == {"pixels"} else red)
     err = np.sqrt(np.maximum(np.diag(cov), 0))
@@ -1144,6 +1203,40 @@ def _errors(model: ImageModel, data, values: Mapping[str, float], target=None):
                 msgs.append(f"{k} = {values[k]:.6g} is at a bound {p.bounds}: widen it or "
                             "check the start.")
     return errors, cov, chi2, dof, m, msgs
+
+
+def noise_limited_errors(model: ImageModel, data: FitData, values: Mapping[str, float],
+                         sigmas: Sequence[Any]) -> list[dict[str, float]]:
+    """The Cramér–Rao standard errors of ``model``'s free parameters at ``values``, one
+    dict for each per-pixel σ in ``sigmas`` (arrays shaped like ``data.image``, finite and
+    > 0 on its used pixels): √diag((Jᵀ Σ⁻¹ J)⁻¹), J the model image's Jacobian over the
+    used pixels. The least standard error any unbiased fit of these pixels can have, if
+    the model were exact and the noise Gaussian with that σ: noise alone, no mismatch,
+    not scaled by χ²/dof. The Jacobian is computed once; each σ costs a p × p inverse.
+    For a star ``f`` times fainter in the same units, σ² = (f · read)² + f · I / gain
+    (the fainter star's noise scaled back up to this star's brightness)."""
+    if isinstance(data, list):
+        raise FitInputError("noise_limited_errors: one FitData (one capture), not a list.")
+    free = model.free
+    if not free:
+        raise FitInputError("noise_limited_errors: the model has no free parameter.")
+    unit = dataclasses.replace(data, sigma=np.ones_like(data.image))
+    jac = _jacobian(model, unit, values, [_PixelTarget(unit)])[0]
+    out = []
+    for i, sig in enumerate(sigmas):
+        sig = np.asarray(sig, float)
+        if sig.shape != data.image.shape:
+            raise FitInputError(f"noise_limited_errors: sigmas[{i}] has shape {sig.shape}; "
+                                f"the data's is {data.image.shape}.")
+        used = sig[data.mask]
+        if not np.all(np.isfinite(used) & (used > 0)):
+            raise FitInputError(f"noise_limited_errors: sigmas[{i}] must be finite and > 0 "
+                                "on every used pixel.")
+        cov, colnorm = _covariance(jac / np.where(data.mask, sig, 1.0).reshape(-1, 1))
+        err = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        out.append({k: float(e) if c > 0 else float("inf")
+                    for k, e, c in zip(free, err, colnorm)})
+    return out
 
 
 def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
@@ -1917,7 +2010,8 @@ def load_manifest(path):
                        oversample=float(det.get("oversample", 1.0)), pad=int(det.get("pad", 8)),
                        accuracy=float(man.get("accuracy", 1e-2)),
                        source=_load_source(man.get("source", "point"), path.parent),
-                       response=bool(det.get("response", False)))
+                       response=bool(det.get("response", False)),
+                       resampling=det.get("resampling"))
     opts = {"stages": man.get("stages"), "starts": man.get("starts"),
             "max_steps": int(man.get("max_steps", 100)), "manifest": man,
             "builder": kind, "per_capture": man.get("per_capture")}
