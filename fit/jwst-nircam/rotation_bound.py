@@ -7,11 +7,12 @@ At a `difstar fit-image` result's values, with every parameter the manifest free
 still free, prints the Cramér–Rao standard error of the rotation
 (`difstar.noise_limited_errors`) for this star and for stars ``factors`` times fainter
 (σ² = (f · read)² + f · I / gain, the read noise and gain the result estimated from its
-own residual, no floor: the noise alone). No fit of any kind, however good its model,
+own residual, no floor: the noise alone; the gain so estimated takes in some of the
+model's mismatch, so a second column leaves out the photon noise: a lower limit). No fit of any kind, however good its model,
 can be more precise on average; the model's mismatch only adds to it. For two stars
 of one kind fitted independently, each with its own noise, the table gives the chance
 that their rotations agree within ``--within`` degrees if each fit reached its bound
-and had no bias: P = erf(within / (2 σ_pair)), σ_pair² = σ_star² + σ_other². Writes
+and had no bias: P = erf(within / (√2 σ_pair)), σ_pair² = σ_star² + σ_other². Writes
 nothing; about 2 minutes on 2 cores (one Jacobian).
 """
 
@@ -49,23 +50,26 @@ def main(argv=None) -> int:
     inten = np.maximum(data_intensity(data, v["background"]), 0.0)
     peak = float(inten[data.mask].max())
     sigmas = [np.sqrt((f * read) ** 2 + f * inten / gain) for f in a.factors]
-    errs = noise_limited_errors(model.with_values(v), data, v, sigmas)
+    reads = [np.full(data.image.shape, f * read) for f in a.factors]
+    both = noise_limited_errors(model.with_values(v), data, v, sigmas + reads)
+    errs, errs_read = both[:len(sigmas)], both[len(sigmas):]
     s1 = errs[a.factors.index(1.0)]["rotation"] if 1.0 in a.factors else None
     print(f"rotation {v['rotation']:.4f}°; noise read {read:.3g}, gain {gain:.4g} (the "
           f"result's estimate, file units); {len(model.free)} free parameters")
-    head = "| star | peak S/N | σ(rotation), noise alone (°) |"
-    line = "|---|---|---|"
+    head = ("| star | peak S/N | σ(rotation), noise alone (°) | read noise alone, no photon "
+            "noise (°) |")
+    line = "|---|---|---|---|"
     if s1 is not None:
-        head += f" P(agrees with this star within {a.within:g}°) |"
+        head += f" P(its rotation and this star's agree within {a.within:g}°) |"
         line += "---|"
     print(head + "\n" + line)
-    for f, e, sig in zip(a.factors, errs, sigmas):
+    for f, e, er, sig in zip(a.factors, errs, errs_read, sigmas):
         snr = peak / f / (float(sig[data.mask][np.argmax(inten[data.mask])]) / f)
-        row = (f"| {'this star' if f == 1 else f'{f:g} × fainter'} | {snr:.0f} | "
-               f"{e['rotation']:.4f} |")
+        row = (f"| {'another as bright' if f == 1 else f'{f:g} × fainter'} | {snr:.0f} | "
+               f"{e['rotation']:.4f} | {er['rotation']:.4f} |")
         if s1 is not None:
             pair = math.sqrt(s1**2 + e["rotation"] ** 2) if f != 1 else math.sqrt(2) * s1
-            row += f" {math.erf(a.within / (2 * pair)):.2f} |"
+            row += f" {math.erf(a.within / (math.sqrt(2) * pair)):.2f} |"
         print(row, flush=True)
     return 0
 
