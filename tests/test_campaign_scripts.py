@@ -131,3 +131,19 @@ def test_contaminated_image_adds_the_neighbour_and_the_hits():
     levels = np.sort(hit[rr, cc])[::-1]  # the star's peak is 100
     assert levels[0] <= 2 * 10.0  # at most 10 % each (two hits could share a pixel)
     assert levels[7] >= 0.3 and levels[-1] >= 0.3 * 0.3  # 0.3 % each; a track's 2nd ≥ 30 %
+
+
+def test_rotation_bound_and_resampling_refuse_bad_input(tmp_path, capsys):
+    """The noise-limit and resampling scripts name what is wrong and exit with 2 before
+    any computation: a result folder without result.json, a factor below 1, an unknown
+    kernel."""
+    manifest = str(HERE / "manifest.json")
+    bound = _script("rotation_bound")
+    assert bound.main([manifest, str(tmp_path)]) == 2
+    assert "result.json" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        bound.main([manifest, str(tmp_path), "--factors", "0.5"])
+    assert e.value.code == 2
+    (tmp_path / "result.json").write_text('{"values": {}}')
+    assert _script("resampling").main([manifest, str(tmp_path), "--kernel", "cubic"]) == 2
+    assert "resampling" in capsys.readouterr().err
