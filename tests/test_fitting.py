@@ -1072,3 +1072,35 @@ def test_noise_limited_errors_match_weighted_linear_least_squares(synthetic):
         noise_limited_errors(model, d, vals, [s1, bad])
     with pytest.raises(FitInputError, match="shape"):
         noise_limited_errors(model, d, vals, [s1[:5]])
+
+
+@pytest.mark.parametrize("which", ["halo", "halo2"])
+def test_halos_are_gaussian_mixtures_against_scipy(which):
+    """Each halo moves a fraction ``a`` of the light into a Gaussian of σ ``width`` px:
+    the image is (1 − a)·I + a·(I ⊛ G). Against scipy.ndimage.gaussian_filter (wrap,
+    truncated at 12 σ) of the unblurred model on the same padded window, cropped, to
+    1e-9 of the peak; both halos together are the one applied after the other; the flux
+    stays."""
+    from scipy.ndimage import gaussian_filter
+
+    kw = dict(light=Light.monochromatic(3.6e-6))
+    params = {"pixel_scale": 0.6, "flux": 1.0}
+    h, p = 31, 10
+    plain = ImageModel(obstructed_circle_pupil(), params, pad=0, **kw)((h + 2 * p, h + 2 * p))
+
+    def mixed(img, a, s):
+        return (1 - a) * img + a * gaussian_filter(img, s, mode="wrap", truncate=12.0)
+
+    a, s = 0.4, 2.5
+    got = ImageModel(obstructed_circle_pupil(), params | {which: a, f"{which}_width": s},
+                     pad=p, **kw)((h, h))
+    want = mixed(plain, a, s)[p:p + h, p:p + h]
+    assert np.abs(got - want).max() < 1e-9 * plain.max()
+    both = ImageModel(obstructed_circle_pupil(),
+                      params | {"halo": 0.2, "halo_width": 4.0, "halo2": a, "halo2_width": s},
+                      pad=p, **kw)((h, h))
+    want2 = mixed(mixed(plain, 0.2, 4.0), a, s)[p:p + h, p:p + h]
+    assert np.abs(both - want2).max() < 1e-9 * plain.max()
+    full = ImageModel(obstructed_circle_pupil(), params | {which: a, f"{which}_width": s},
+                      pad=0, **kw)((h + 2 * p, h + 2 * p))
+    assert full.sum() == pytest.approx(plain.sum(), rel=1e-12)

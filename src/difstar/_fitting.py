@@ -544,6 +544,7 @@ class _Shifted(eqx.Module):
 #: Parameters every model has, with defaults (SI units except where noted).
 COMMON = {"rotation": 0.0, "x0": 0.0, "y0": 0.0, "flux": 1.0, "background": 0.0,
           "pixel_scale": 0.03, "jitter": 0.0, "halo": 0.0, "halo_width": 4.0,
+          "halo2": 0.0, "halo2_width": 1.5,
           "shear": 0.0, "aspect": 0.0}
 
 
@@ -649,7 +650,10 @@ class ImageModel:
     scale) for the common parameters (``rotation`` deg, ``x0``, ``y0`` data pixels,
     ``flux``, ``background``, ``pixel_scale`` arcsec per data pixel, ``jitter`` σ in data
     pixels, ``halo`` fraction and ``halo_width`` σ in data pixels: a broad scattered-light
-    Gaussian; ``shear`` and ``aspect``: the image-plane distortion of
+    Gaussian; ``halo2``, ``halo2_width``: a second one, applied after the first (each
+    moves a fraction of the light into a Gaussian: a segmented mirror's phasing errors
+    scatter light into a halo about one segment's diffraction pattern wide, a co-add's
+    misregistration and a detector's charge diffusion spread the core); ``shear`` and ``aspect``: the image-plane distortion of
     :func:`image_distortion`), the pupil builder's and ``z<j>`` (nm RMS) for each Noll index in
     ``zernike``. ``oversample``: data pixels per native detector pixel (drizzled or
     oversampled data: the PSF is integrated over the data's fine pixels, then convolved
@@ -844,8 +848,9 @@ class ImageModel:
         fx = np.fft.rfftfreq(wp)[None, :]
         f2 = fx**2 + fy**2
         kern = jnp.exp(-2 * math.pi**2 * v["jitter"] ** 2 * f2)
-        kern = kern * ((1.0 - v["halo"])
-                       + v["halo"] * jnp.exp(-2 * math.pi**2 * v["halo_width"] ** 2 * f2))
+        for frac, width in (("halo", "halo_width"), ("halo2", "halo2_width")):
+            kern = kern * ((1.0 - v[frac])
+                           + v[frac] * jnp.exp(-2 * math.pi**2 * v[width] ** 2 * f2))
         if o != 1.0:
             kern = kern * jnp.asarray(np.sinc(o * fx) * np.sinc(o * fy))
         if self.resampling:
