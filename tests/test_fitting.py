@@ -226,8 +226,11 @@ def test_jwst_manifest_loads_and_model_matches_data_shape():
     assert data_file.is_file(), f"{data_file} is missing: clone the project beside shared/"
     model, data, opts = load_manifest(path)
     assert data.image.shape == (91, 91)
-    assert "rotation" in model.free and "z4" in model.free
+    assert {"rotation", "halo", "halo2"} <= set(model.free)
     assert opts["stages"]
+    with_wavefront, _, _ = load_manifest(ROOT / "fit" / "jwst-nircam" / "variants" /
+                                         "segment-wavefront.json")
+    assert "z4" in with_wavefront.free
     small = data.cropped(10)
     img = model(small.image.shape)
     assert img.shape == small.image.shape and np.all(np.isfinite(img))
@@ -236,13 +239,15 @@ def test_jwst_manifest_loads_and_model_matches_data_shape():
 
 def test_jwst_model_mirrored_is_the_mirror_image():
     """An exact symmetry, not the code's own output: the JWST pupil is mirror-symmetric
-    about its vertical axis, so the campaign's model with the pupil's rotation, the
+    about its vertical axis, so the campaign's model (with a wavefront and both
+    halos) with the pupil's rotation, the
     upper strut's tilt, the centre's x and the Zernike terms odd in x (Noll 5, 8, 10)
     negated is the left-right mirror of the image. Fails if the pupil, the struts, the
     shift or a Zernike term's orientation (e.g. x and y swapped) breaks the symmetry."""
-    model, _, _ = load_manifest(ROOT / "fit" / "jwst-nircam" / "manifest.json")
+    model, _, _ = load_manifest(ROOT / "fit" / "jwst-nircam" / "variants" /
+                                "segment-wavefront.json")  # the campaign's model with a wavefront
     v = dict(model.values())
-    v.update(rotation=0.7, strut_tilt=2.0, x0=0.31, y0=-0.22, z4=160.0, z5=30.0, z6=-55.0,
+    v.update(halo2=0.4, halo2_width=1.8, rotation=0.7, strut_tilt=2.0, x0=0.31, y0=-0.22, z4=160.0, z5=30.0, z6=-55.0,
              z7=-12.0, z8=-9.0, z9=-5.0, z10=6.0, z11=170.0)
     odd = ("rotation", "strut_tilt", "x0", "z5", "z8", "z10")
     w = {k: (-x if k in odd else x) for k, x in v.items()}
