@@ -247,8 +247,8 @@ def test_jwst_model_mirrored_is_the_mirror_image():
     model, _, _ = load_manifest(ROOT / "fit" / "jwst-nircam" / "variants" /
                                 "segment-wavefront.json")  # the campaign's model with a wavefront
     v = dict(model.values())
-    v.update(halo2=0.4, halo2_width=1.8, rotation=0.7, strut_tilt=2.0, x0=0.31, y0=-0.22, z4=160.0, z5=30.0, z6=-55.0,
-             z7=-12.0, z8=-9.0, z9=-5.0, z10=6.0, z11=170.0)
+    v.update(halo2=0.4, halo2_width=1.8, rotation=0.7, strut_tilt=2.0, x0=0.31, y0=-0.22,
+             z4=160.0, z5=30.0, z6=-55.0, z7=-12.0, z8=-9.0, z9=-5.0, z10=6.0, z11=170.0)
     odd = ("rotation", "strut_tilt", "x0", "z5", "z8", "z10")
     w = {k: (-x if k in odd else x) for k, x in v.items()}
     a = np.asarray(model.image(v, (21, 21)))
