@@ -658,7 +658,8 @@ class ImageModel:
     builder's and ``z<j>`` (nm RMS) for each Noll index in ``zernike``. ``oversample``:
     data pixels per native detector pixel (drizzled or oversampled data: the PSF is
     integrated over the data's fine pixels, then convolved with a native pixel's box);
-    ``pad``: extra data pixels computed around the window so the blur does not wrap. ``accuracy``: the PSF engine's target.
+    ``pad``: extra data pixels computed around the window so the blur does not wrap.
+    ``accuracy``: the PSF engine's target.
 
     ``source``: "point" (default); "disc", a uniform disc of radius ``source_radius``
     (data pixels; its transform 2 J1(x)/x multiplies the image's spectrum, like the
