@@ -1147,9 +1147,10 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     return vals, status, ok, sol.steps
 
 
-def _jacobian(model: ImageModel, data, values: Mapping[str, float], target):
-    """The residual's Jacobian over the free parameters (physical units) at ``values``,
-    the residual and the model images."""
+def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
+              residual: bool = True):
+    """The residual's Jacobian over the free parameters (physical units) at ``values``;
+    with ``residual``, also the residual and the model images (one more compile)."""
     free = model.free
     base = {k: jnp.asarray(v, float) for k, v in values.items()}
     resv = _residual_fn(model, data, target)
@@ -1162,6 +1163,8 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target):
 
     x0 = jnp.asarray([values[k] for k in free], float)
     jac = np.asarray(jax.jit(jax.jacfwd(lambda x: res(x)[0]))(x0))
+    if not residual:
+        return jac
     r, m = jax.jit(res)(x0)
     return jac, np.asarray(r), [np.asarray(mi) for mi in m]
 
@@ -1227,7 +1230,7 @@ def noise_limited_errors(model: ImageModel, data: FitData, values: Mapping[str, 
     if not free:
         raise FitInputError("noise_limited_errors: the model has no free parameter.")
     unit = dataclasses.replace(data, sigma=np.ones_like(data.image))
-    jac = _jacobian(model, unit, values, [_PixelTarget(unit)])[0]
+    jac = _jacobian(model, unit, values, [_PixelTarget(unit)], residual=False)
     out = []
     for i, sig in enumerate(sigmas):
         sig = np.asarray(sig, float)
