@@ -1035,7 +1035,7 @@ def test_lanczos_transfer_is_the_mean_of_resamplings(a):
 def test_resampling_option_is_checked_and_blurs_the_model():
     """``resampling`` takes null or 'lanczos2' … 'lanczos5' (a clear error otherwise) and
     multiplies the model's spectrum by the kernel's transfer: the flux stays, the peak
-    drops."""
+    drops; ``with_resampling`` gives the same model as the constructor."""
     with pytest.raises(FitInputError, match="resampling"):
         ImageModel(obstructed_circle_pupil(), {}, light=Light.monochromatic(3.6e-6),
                    resampling="bicubic")
@@ -1045,6 +1045,11 @@ def test_resampling_option_is_checked_and_blurs_the_model():
     lz = ImageModel(obstructed_circle_pupil(), params, resampling="LANCZOS3", **kw)((33, 33))
     assert lz.sum() == pytest.approx(plain.sum(), rel=1e-3)
     assert lz.max() < plain.max()
+    base = ImageModel(obstructed_circle_pupil(), params, **kw)
+    np.testing.assert_array_equal(base.with_resampling("lanczos3")((33, 33)), lz)
+    with pytest.raises(FitInputError, match="resampling"):
+        base.with_resampling("cubic")
+    assert base.resampling == 0  # the original is left as it was
 
 
 def test_noise_limited_errors_match_weighted_linear_least_squares(synthetic):

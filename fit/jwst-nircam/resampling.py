@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from difstar import FitInputError, ImageModel, fit_image, load_fit_manifest
+    from difstar import FitInputError, fit_image, load_fit_manifest
 
     try:
         v = json.loads((Path(a.result) / "result.json").read_text())["values"]
@@ -41,11 +41,7 @@ def main(argv=None) -> int:
         spike = next(dict(st) for st in reversed(stages) if st.get("spikes"))
         whole = next(dict(st) for st in reversed(stages)
                      if st.get("free") and not st.get("spikes"))
-        with_kernel = ImageModel(model.pupil, model.params, light=model.light,
-                                 zernike=model.zernike, oversample=model.oversample,
-                                 pad=model.pad, accuracy=model.accuracy,
-                                 source=model.source, response=model.response,
-                                 resampling=a.kernel)
+        with_kernel = model.with_resampling(a.kernel)
     except (OSError, json.JSONDecodeError, KeyError, FitInputError, StopIteration) as e:
         print(f"resampling: {e or 'the manifest needs a spikes stage and a whole-image stage'}",
               file=sys.stderr)

@@ -776,6 +776,15 @@ class ImageModel:
             m.params[k] = q
         return m
 
+    def with_resampling(self, resampling: str | None) -> ImageModel:
+        """A copy whose detector models a co-add resampled with ``resampling`` (null or
+        'lanczos2' … 'lanczos5', as the constructor takes it); every parameter and plan
+        kept (the kernel does not change the PSF's plan)."""
+        m = object.__new__(ImageModel)
+        m.__dict__ = dict(self.__dict__)
+        m.resampling = _resampling_order(resampling)
+        return m
+
     def _bound(self, name, pick):
         p = self.params[name]
         vals = [p.value] + (list(p.bounds) if (p.free and p.bounds) else [])
