@@ -87,8 +87,9 @@ def main(argv=None) -> int:
         head += f" P(its rotation and this star's agree within {a.within:g}°) |"
         line += "---|"
     print(head + "\n" + line)
+    brightest = np.argmax(inten[data.mask])
     for f, e, er, sig in zip(a.factors, errs, errs_read, sigmas):
-        snr = peak / f / (float(sig[data.mask][np.argmax(inten[data.mask])]) / f)
+        snr = peak / float(sig[data.mask][brightest])  # the fainter star's, scaled alike
         row = (f"| {'another as bright' if f == 1 else f'{f:g} × fainter'} | {snr:.0f} | "
                f"{e['rotation']:.4f} | {er['rotation']:.4f} |")
         if s1 is not None:
