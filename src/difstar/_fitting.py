@@ -107,12 +107,20 @@ def _as_param(p: Any) -> Param:
 class PupilBuilder:
     """A pupil as a function of named parameters. ``build(values)`` returns the pupil
     before the overall rotation; ``defaults`` name its parameters and their defaults (SI
-    units, angles in degrees); ``max_radius`` bounds its radius over the fit (metres)."""
+    units, angles in degrees); ``max_radius`` bounds its radius over the fit (metres).
+
+    A segmented pupil may also give ``segment(values)``, one of its segments centred on
+    the origin (same orientation), and ``segment_radius``, that segment's outermost
+    radius: the model then has the parameter ``incoherent``, the fraction of the light
+    that falls as the segments' own diffraction patterns added incoherently (see
+    :class:`ImageModel`)."""
 
     name: str
     build: Callable[[Mapping[str, Any]], Any]
     defaults: Mapping[str, float]
     max_radius: float
+    segment: Callable[[Mapping[str, Any]], Any] | None = None
+    segment_radius: float | None = None
 
 
 def jwst_pupil(flat_to_flat: float = 1.32, gap: float = 0.007) -> PupilBuilder:
@@ -132,11 +140,16 @@ def jwst_pupil(flat_to_flat: float = 1.32, gap: float = 0.007) -> PupilBuilder:
         struts = Struts(angles, v["strut_width"])
         return Obstructed(segs, Circle(v["obstruction"]), struts)
 
+    def segment(v):
+        return hex_segments(0, v["flat_to_flat"], v["gap"], include_centre=True)
+
     r = 2 * (flat_to_flat + gap) + flat_to_flat / math.sqrt(3)  # outermost vertex
     return PupilBuilder("jwst", build, {"flat_to_flat": flat_to_flat, "gap": gap,
                                         "obstruction": 0.37, "strut_width": 0.1,
-                                        "strut_spread": 30.0, "strut_tilt": 0.0},
-                        max_radius=1.05 * r)
+                                        "strut_spread": 30.0, "strut_tilt": 0.0,
+                                        "incoherent": 0.0},
+                        max_radius=1.05 * r, segment=segment,
+                        segment_radius=1.05 * flat_to_flat / math.sqrt(3))
 
 
 def obstructed_circle_pupil(radius: float = 0.425) -> PupilBuilder:
@@ -655,7 +668,13 @@ class ImageModel:
     scatter light into a halo about one segment's diffraction pattern wide, a co-add's
     misregistration and a detector's charge diffusion spread the core); ``shear`` and
     ``aspect``: the image-plane distortion of :func:`image_distortion`), the pupil
-    builder's and ``z<j>`` (nm RMS) for each Noll index in ``zernike``. ``oversample``:
+    builder's and ``z<j>`` (nm RMS) for each Noll index in ``zernike``. A segmented
+    builder (one with a ``segment``, :func:`jwst_pupil`) adds ``incoherent``, a fraction
+    f in [0, 1]: the image is (1 − f) × the whole pupil's + f × one segment's own pattern
+    (same orientation and shift), which is the mean image for random phasing errors of
+    RMS φ between the segments with f = 1 − e^(−φ²) (the cross terms between segments
+    average out; the segments' patterns differ only in phase, so their sum is the one
+    segment's; struts and obstruction crossing a segment are left out of it). ``oversample``:
     data pixels per native detector pixel (drizzled or oversampled data: the PSF is
     integrated over the data's fine pixels, then convolved with a native pixel's box);
     ``pad``: extra data pixels computed around the window so the blur does not wrap.
@@ -707,6 +726,11 @@ class ImageModel:
             if p is not None and min([p.value, *(p.bounds or ())]) < lo:
                 raise FitInputError(f"ImageModel: {k} = {p.value} (bounds {p.bounds}) must be "
                                     f"{'>= 0' if lo == 0 else '> 0'}.")
+        p = self.params.get("incoherent")
+        if p is not None and not 0 <= min([p.value, *(p.bounds or ())]) <= max(
+                [p.value, *(p.bounds or ())]) <= 1:
+            raise FitInputError(f"ImageModel: incoherent = {p.value} (bounds {p.bounds}) is "
+                                "a fraction of the light: keep it and its bounds in [0, 1].")
         for j in self.zernike:
             p = self.params[f"z{j}"]
             if max([abs(p.value), *(abs(b) for b in (p.bounds or ()))]) > 1e4:
@@ -790,14 +814,26 @@ class ImageModel:
         vals = [p.value] + (list(p.bounds) if (p.free and p.bounds) else [])
         return pick(vals)
 
-    def plan(self, shape, light: Light | None = None):
+    @property
+    def has_incoherent(self) -> bool:
+        """Whether the image has the segments' incoherent part (``incoherent`` free or
+        not 0; only for a pupil builder with a ``segment``)."""
+        p = self.params.get("incoherent")
+        return (self.pupil.segment is not None and p is not None
+                and (p.free or p.value != 0))
+
+    def plan(self, shape, light: Light | None = None, *, segment: bool = False):
         """The PSF plan for an output window ``shape`` (data pixels, padding included) and
         ``light`` (default: the model's), made once with the largest angular scale and
-        wavefront slope the bounds allow."""
+        wavefront slope the bounds allow. ``segment``: the plan of one segment's pattern
+        (the incoherent part; tilt only, no Zernike terms), which the whole pupil's plan
+        makes and caches as well, so that :meth:`image` finds it inside a trace."""
         light = self.light if light is None else light
-        key = (tuple(shape), tuple(light.wavelengths))
+        key = (tuple(shape), tuple(light.wavelengths), segment)
         if key in self._plans:
             return self._plans[key]
+        if not segment and self.has_incoherent:
+            self.plan(shape, light, segment=True)
         ang = self._bound("pixel_scale", min) * ARCSEC
         z = _PITCH / ang
         r = float(self.pupil.max_radius)
@@ -810,9 +846,15 @@ class ImageModel:
                                                   *(self.params[f"z{j}"].bounds or ())])
                   for j in self.zernike}
         coeffs = {j: c for j, c in coeffs.items() if c > 0}
-        zern = Zernike(coeffs, r) if coeffs else None
+        zern = Zernike(coeffs, r) if coeffs and not segment else None
         wf = _Shifted(zern, tilt, tilt)
-        plan = plan_psf(self._pupil_at(self.values()),
+        v = self.values()
+        if segment:
+            r = float(self.pupil.segment_radius)
+            pupil = self._oriented(self.pupil.segment(v), v)
+        else:
+            pupil = self._pupil_at(v)
+        plan = plan_psf(pupil,
                         wavelength=np.asarray(light.wavelengths),
                         z_image=z, pixel_pitch=_PITCH, shape=tuple(shape), sampling="pixel",
                         accuracy=self.accuracy, wavefront=wf, max_radius=r)
@@ -820,7 +862,11 @@ class ImageModel:
         return plan
 
     def _pupil_at(self, v):
-        pup = self.pupil.build(v).transformed(jnp.deg2rad(v["rotation"]))
+        return self._oriented(self.pupil.build(v), v)
+
+    def _oriented(self, pup, v):
+        """``pup`` rotated by ``rotation`` and distorted by ``shear``, ``aspect``."""
+        pup = pup.transformed(jnp.deg2rad(v["rotation"]))
         if any(self.params[k].free or self.params[k].value != 0 for k in ("shear", "aspect")):
             d = image_distortion(v["shear"], v["aspect"])
             pup = distorted(pup, jnp.linalg.inv(d).T)  # the pupil map for image map D
@@ -853,6 +899,15 @@ class ImageModel:
         wts = np.asarray(light.weights)
         img = psf(pupil, wavelength=lam, weights=wts, z_image=z, pixel_pitch=_PITCH,
                   shape=(hp, wp), plan=plan, wavefront=wf)
+        if self.has_incoherent:
+            # random phasing errors of RMS φ between segments: the mean image is
+            # e^(−φ²) × the whole pupil's + (1 − e^(−φ²)) × the sum of the segments' own
+            # patterns, each the one segment's shifted in the pupil (the same image)
+            seg = psf(self._oriented(self.pupil.segment(v), v), wavelength=lam,
+                      weights=wts, z_image=z, pixel_pitch=_PITCH, shape=(hp, wp),
+                      plan=self.plan((hp, wp), light, segment=True),
+                      wavefront=_Shifted(None, tx, ty))
+            img = (1.0 - v["incoherent"]) * img + v["incoherent"] * seg
         # detector: native pixel box (oversampled data) and Gaussian blur, by FFT
         fy = np.fft.fftfreq(hp)[:, None]
         fx = np.fft.rfftfreq(wp)[None, :]
