@@ -1117,6 +1117,18 @@ def test_halos_are_gaussian_mixtures_against_scipy(which):
     assert full.sum() == pytest.approx(plain.sum(), rel=1e-12)
 
 
+def _assert_matches_central_differences(jac, img, base, names, x0):
+    """Each column of ``jac`` (the Jacobian of ``img(x, base)`` at ``x0``, parameters
+    ``names``) against central differences of step 1e-5 × max(1, |value|), to 1e-5 of
+    the largest difference."""
+    for i, k in enumerate(names):
+        h = 1e-5 * max(1.0, abs(base[k]))
+        e = np.zeros(len(names))
+        e[i] = h
+        fd = (np.asarray(img(x0 + e, base)) - np.asarray(img(x0 - e, base))) / (2 * h)
+        assert np.abs(jac[..., i] - fd).max() < 1e-5 * np.abs(fd).max() + 1e-12, k
+
+
 def test_image_model_jacobian_matches_finite_differences():
     """jax.jacfwd of the model image in the detector's and the source's parameters
     (both halos, the jitter, the rotation, the shift) against central differences, in
@@ -1140,12 +1152,7 @@ def test_image_model_jacobian_matches_finite_differences():
 
     x0 = jnp.asarray([base[k] for k in names], float)
     jac = np.asarray(jax.jit(jax.jacfwd(lambda x: img(x, base)))(x0))
-    for i, k in enumerate(names):
-        h = 1e-5 * max(1.0, abs(base[k]))
-        e = np.zeros(len(names))
-        e[i] = h
-        fd = (np.asarray(img(x0 + e, base)) - np.asarray(img(x0 - e, base))) / (2 * h)
-        assert np.abs(jac[..., i] - fd).max() < 1e-5 * np.abs(fd).max() + 1e-12, k
+    _assert_matches_central_differences(jac, img, base, names, x0)
     hard = base | {"jitter": 0.0, "halo": 0.0, "halo2": 0.0}
     xh = jnp.asarray([hard[k] for k in names], float)
     jh = np.asarray(jax.jacfwd(lambda x: img(x, hard))(xh))
@@ -1238,12 +1245,7 @@ def test_incoherent_part_jacobian_matches_finite_differences():
     base = model.values() | {"incoherent": 0.3, "rotation": 2.0, "x0": 0.2}
     x0 = jnp.asarray([base[k] for k in names], float)
     jac = np.asarray(jax.jit(jax.jacfwd(lambda x: img(x, base)))(x0))
-    for i, k in enumerate(names):
-        h = 1e-5 * max(1.0, abs(base[k]))
-        e = np.zeros(len(names))
-        e[i] = h
-        fd = (np.asarray(img(x0 + e, base)) - np.asarray(img(x0 - e, base))) / (2 * h)
-        assert np.abs(jac[..., i] - fd).max() < 1e-5 * np.abs(fd).max() + 1e-12, k
+    _assert_matches_central_differences(jac, img, base, names, x0)
     for end in (0.0, 1.0):
         at = base | {"incoherent": end}
         jh = np.asarray(jax.jacfwd(lambda x: img(x, at))(
