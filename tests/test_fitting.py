@@ -227,8 +227,12 @@ def test_jwst_manifest_loads_and_model_matches_data_shape():
     assert data_file.is_file(), f"{data_file} is missing: clone the project beside shared/"
     model, data, opts = load_manifest(path)
     assert data.image.shape == (91, 91)
-    assert {"rotation", "halo", "halo2"} <= set(model.free)
+    assert {"rotation", "jitter", "halo"} <= set(model.free)
+    assert "halo2" not in model.free  # one blur: see fit/jwst-nircam/README.md
     assert opts["stages"]
+    two_halos, _, _ = load_manifest(ROOT / "fit" / "jwst-nircam" / "variants" /
+                                    "two-halos.json")
+    assert {"halo", "halo2"} <= set(two_halos.free)
     with_wavefront, _, _ = load_manifest(ROOT / "fit" / "jwst-nircam" / "variants" /
                                          "segment-wavefront.json")
     assert "z4" in with_wavefront.free
