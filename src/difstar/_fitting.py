@@ -836,24 +836,23 @@ class ImageModel:
             self.plan(shape, light, segment=True)
         ang = self._bound("pixel_scale", min) * ARCSEC
         z = _PITCH / ang
-        r = float(self.pupil.max_radius)
+        v = self.values()
+        if segment:
+            pupil, r = self._oriented(self.pupil.segment(v), v), float(self.pupil.segment_radius)
+        else:
+            pupil, r = self._pupil_at(v), float(self.pupil.max_radius)
         # the widest shift of the star any value or bound allows (x0@i: each capture's)
         shift = max([self.max_shift] + [abs(b) for k, p in self.params.items()
                                          if k.split("@")[0] in ("x0", "y0")
                                          for b in [p.value, *(p.bounds or ())]])
         tilt = shift * self._bound("pixel_scale", max) * ARCSEC
-        coeffs = {j: 1e-9 * max(abs(v) for v in [self.params[f"z{j}"].value,
-                                                  *(self.params[f"z{j}"].bounds or ())])
-                  for j in self.zernike}
+        # the largest Zernike terms any value or bound allows (the whole pupil's only)
+        coeffs = {} if segment else {
+            j: 1e-9 * max(abs(c) for c in [self.params[f"z{j}"].value,
+                                           *(self.params[f"z{j}"].bounds or ())])
+            for j in self.zernike}
         coeffs = {j: c for j, c in coeffs.items() if c > 0}
-        zern = Zernike(coeffs, r) if coeffs and not segment else None
-        wf = _Shifted(zern, tilt, tilt)
-        v = self.values()
-        if segment:
-            r = float(self.pupil.segment_radius)
-            pupil = self._oriented(self.pupil.segment(v), v)
-        else:
-            pupil = self._pupil_at(v)
+        wf = _Shifted(Zernike(coeffs, r) if coeffs else None, tilt, tilt)
         plan = plan_psf(pupil,
                         wavelength=np.asarray(light.wavelengths),
                         z_image=z, pixel_pitch=_PITCH, shape=tuple(shape), sampling="pixel",
