@@ -296,9 +296,11 @@ def test_overwrite_replaces_only_what_difstar_made(work, capsys):
     scene = write_text(work / "s.json", json.dumps(small_doc()))
     digest = hashlib.sha256(scene.read_bytes()).hexdigest()
     out = work / "out"
-    stale = work / ".out.difstar-tmp-999999999-abcd"
+    from difstar.io._output import _write_marker
+
+    stale = work / ".out.difstar-tmp-0a0b0c0d0e0f1a1b"  # a killed run's, its lock gone
     stale.mkdir()
-    write_text(stale / ".difstar-output", json.dumps({"difstar": "output", "files": []}))
+    _write_marker(stale, [], "predict", "0a0b0c0d0e0f1a1b")
     write_text(stale / "raw.tiff", "half written")
     foreign = work / ".out.someone-elses-tmp"
     foreign.mkdir()
@@ -328,6 +330,164 @@ def test_failure_while_writing_leaves_nothing(work, capsys, monkeypatch):
     code, err = run(["predict", scene, "--out", work / "new" / "deeper" / "out"], capsys)
     assert code == 1 and "internal error" in err and "disk on fire" in err
     assert snapshot(work) == before
+
+
+# ------------------------------------------------- data loss, second round (issue 31)
+
+
+def _star_manifest(folder: Path, data_path: str = "star.npy") -> Path:
+    """A small valid fit-image manifest and its 24 × 24 Gaussian star (NumPy): every case
+    below is refused before anything is computed."""
+    yy, xx = np.mgrid[:24, :24]
+    np.save(folder / data_path, 100.0 * np.exp(-((xx - 12) ** 2 + (yy - 12) ** 2) / 4.0) + 1.0)
+    doc = {"data": {"path": data_path, "sigma": 1.0},
+           "pupil": {"builder": "circle", "radius": 0.425},
+           "light": {"wavelength": 3.6e-6}, "detector": {"pad": 4},
+           "params": {"pixel_scale": 0.3,
+                      "flux": {"value": "auto", "free": True},
+                      "background": {"value": "auto", "free": True}},
+           "stages": [{"free": "all", "max_steps": 2}]}
+    return write_text(folder / "manifest.json", json.dumps(doc))
+
+
+def test_fit_image_overwrite_never_replaces_a_folder_of_look_alike_names(work, capsys):
+    """No marker, only files named like fit-image's outputs: a user's folder (was:
+    deleted, exit 0)."""
+    man = _star_manifest(work)
+    mine = work / "results"
+    mine.mkdir()
+    for name in ("result.json", "model.npy", "fit.png"):
+        write_text(mine / name, "my own " + name)
+    refused(["fit-image", man, "--out", mine, "--overwrite"], capsys, work,
+            "not made by difstar")
+
+
+def test_fit_image_never_replaces_the_folder_of_its_data(work, capsys):
+    """The data file the manifest names is an input too (was: only the manifest), even
+    inside a folder that carries difstar's marker."""
+    d = work / "d"
+    d.mkdir()
+    man = _star_manifest(work, data_path="d/star.npy")
+    write_text(d / MARKER, json.dumps({"difstar": "output", "files": ["star.npy"]}))
+    refused(["fit-image", man, "--out", d, "--overwrite"], capsys, work, "input", "star.npy")
+
+
+# entries a user may have made whose names look like difstar's temporaries
+LOOK_ALIKES = [
+    (".ex.json.difstar-old-999999999-abcd", "dir"),
+    (".ex.json.difstar-tmp-999999999-abcd", "file"),
+    (".out.difstar-tmp-999999999-abcd", "dir+marker"),  # an old-style name, no token
+    (".out.difstar-tmp-0123456789abcdef", "dir+marker"),  # a token the marker lacks
+    (".out.difstar-tmp-fedcba9876543210", "dir+marker+token+otherhost"),
+]
+
+
+def _make_look_alike(work: Path, name: str, kind: str) -> None:
+    p = work / name
+    if kind == "file":
+        write_text(p, "a user's file")
+        return
+    p.mkdir()
+    write_text(p / "notes.txt", "a user's notes")
+    if "marker" in kind:
+        doc = {"difstar": "output", "files": []}
+        if "token" in kind:
+            doc.update(token=name[-16:], host="another-host-" + os.urandom(4).hex())
+        write_text(p / MARKER, json.dumps(doc))
+
+
+def test_clean_up_never_touches_a_look_alike_entry(work, capsys):
+    """The clean-up beside every destination (was: deleted or moved a user's entry named
+    like a temporary whose 'PID' was not running)."""
+    for name, kind in LOOK_ALIKES:
+        _make_look_alike(work, name, kind)
+    before = snapshot(work)
+    code, err = run(["example", "paper-focused", "--out", work / "ex.json"], capsys)
+    assert code == 0, err
+    after = snapshot(work)
+    assert after.pop("ex.json")
+    assert after == before
+
+
+def test_clean_up_leaves_a_live_run_alone(work):
+    """A temporary folder whose run holds its lock (a run in another container sharing
+    the folder, or a PID reused) is live: never removed."""
+    from difstar.io import _output
+
+    tmp = work / ".out.difstar-tmp-00112233445566aa"
+    tmp.mkdir()
+    _output._write_marker(tmp, [], "test", "00112233445566aa")
+    lock = _output._lock(tmp)
+    assert lock is not None
+    try:
+        assert _output.remove_stale(work) == [] and tmp.exists()
+    finally:
+        lock.close()
+    assert _output.remove_stale(work) == [tmp] and not tmp.exists()
+
+
+def test_run_killed_between_the_renames_puts_the_old_result_back(work):
+    """--overwrite moves the old result into the new temporary folder; a run killed
+    there leaves it, and the next run beside it puts it back in place."""
+    from difstar.io import _output
+
+    old = work / "out"
+    with _output.output_dir(old, command="test") as tmp:
+        write_text(tmp / "a.txt", "old result")
+    token = "a1b2c3d4e5f60718"
+    tmp = work / f".out.difstar-tmp-{token}"
+    tmp.mkdir()
+    _output._write_marker(tmp, [], "test", token)
+    write_text(tmp / "a.txt", "new result, half written")
+    os.replace(old, tmp / _output.DISPLACED)  # the kill came here
+    assert not old.exists()
+    assert _output.remove_stale(work) == [tmp]
+    assert (old / "a.txt").read_text() == "old result" and not tmp.exists()
+
+
+def test_synth_overwrite_never_replaces_a_camera_raw(work, capsys):
+    """A real camera's DNG under a capture's name, in a folder with no marker (was:
+    replaced). Only DNGs difstar wrote (TIFF Software tag) may be."""
+    import shutil as sh
+
+    from difstar._fit_cli import synth_replaceable
+    from difstar.io._manifest import load_manifest
+
+    man = base_manifest(work)
+    p = write_text(work / "m.json", json.dumps(man))
+    caps = work / "caps"
+    caps.mkdir()
+    real = REPO.parent / "shared" / "data" / "raw" / "camera_raw" / "Blackmagic.dng"
+    sh.copyfile(real, caps / Path(man["captures"][0]["file"]).name)
+    refused(["synth", p, "--out", caps, "--overwrite"], capsys, work, "did not write",
+            Path(man["captures"][0]["file"]).name)
+    # the committed synthetic captures are difstar's own DNGs: replaceable
+    ok = synth_replaceable(load_manifest(CAMPAIGN / "manifest.json"))
+    assert all(ok(f) for f in (CAMPAIGN / "captures").iterdir())
+    assert not ok(caps / Path(man["captures"][0]["file"]).name)
+
+
+def test_full_disk_is_refused_up_front_and_named_while_writing(work, capsys, monkeypatch):
+    import errno as err_no
+    import shutil as sh
+
+    import difstar.io._output as output
+
+    scene = write_text(work / "s.json", json.dumps(small_doc()))
+    usage = sh.disk_usage(work)
+    monkeypatch.setattr(output.shutil, "disk_usage",
+                        lambda p: type(usage)(usage.total, usage.total - 1000, 1000))
+    refused(["predict", scene, "--out", work / "out"], capsys, work, "--out", "free")
+    monkeypatch.undo()
+    monkeypatch.chdir(work)
+
+    def full(*args, **kwargs):
+        raise OSError(err_no.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(output, "write_tiff_raw", full)
+    err = refused(["predict", scene, "--out", work / "out"], capsys, work,
+                  "No space left on device", str(work / "out"), "nothing was written")
+    assert len([ln for ln in err.splitlines() if "error" in ln]) == 1  # one line, no trace
 
 
 # ------------------------------------------------------------------- fit / synth
@@ -400,7 +560,8 @@ def test_synth_never_deletes_the_manifest(work, capsys):
     # a folder holding the captures synth writes, and another file
     for c in man["captures"]:
         write_text(work / "caps" / c["file"], "old capture")
-    refused(["synth", p, "--out", work / "caps", "--overwrite"], capsys, work, "notes.txt")
+    refused(["synth", p, "--out", work / "caps", "--overwrite"], capsys, work,
+            "holds files difstar did not write")
 
 
 def test_design_arguments(work, capsys):

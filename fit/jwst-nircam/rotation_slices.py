@@ -77,8 +77,8 @@ def main(argv=None) -> int:
                        for st in reversed(opts["stages"] or ())
                        if st.get("noise_from_residuals") is not None), {"floor": 0.0})
     try:
-        with output_dir(a.out, overwrite=a.overwrite, inputs=[a.manifest],
-                        will_write=["rotation_slices.json", "rotation_slices.png"],
+        with output_dir(a.out, overwrite=a.overwrite,
+                        inputs=[a.manifest, *opts.get("inputs", ())],
                         command="rotation_slices") as tmp:
             t0 = time.perf_counter()
             main_v = ref["values"]

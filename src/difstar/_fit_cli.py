@@ -702,10 +702,9 @@ def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
     syn = man.synthetic
     fh, fw = syn["frame_size"]
     pattern = man.camera.get("pattern", "RGGB")
-    names = [c.path.name for c in man.captures]
     written = []
-    with output_dir(out_dir, overwrite=overwrite, inputs=[man.path], will_write=names,
-                    command="synth") as tmp:
+    with output_dir(out_dir, overwrite=overwrite, inputs=[man.path],
+                    replaceable=synth_replaceable(man), command="synth") as tmp:
         model = build_model(
             man, crops={k: (fh, fw) for k in man.configurations},
             base_offsets={c.name: (c.source_position[0] - fh // 2,
@@ -742,6 +741,16 @@ def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
     return written
 
 
+def synth_replaceable(man):
+    """What ``synth --overwrite`` may replace in a folder without difstar's marker: a
+    DNG that difstar wrote, under the name of one of the manifest's captures (never a
+    camera's own RAW file, nor any other file)."""
+    from difstar.io._dng import written_by_difstar
+
+    names = {c.path.name for c in man.captures}
+    return lambda p: p.name in names and written_by_difstar(p)
+
+
 # --------------------------------------------------------------------------- commands
 
 def _enable_x64():
@@ -770,7 +779,7 @@ def _cmd_synth(a) -> int:
                          f"(missing for {missing_t})")
     out = Path(a.out) if a.out else folders.pop()
     check_output_free(out, overwrite=a.overwrite, inputs=[man.path],
-                      will_write=[c.path.name for c in man.captures])
+                      replaceable=synth_replaceable(man))
     synthesize(man, out, overwrite=a.overwrite)
     _log(f"difstar synth: wrote {len(man.captures)} DNG files to {out}/")
     return 0

@@ -94,13 +94,9 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
     if fainter and not any(isinstance(st, dict) and st.get("noise_from_residuals") is not None
                            for st in loaded[2]["stages"] or ()):
         raise FitInputError(_NEEDS_NOISE)  # refused before the main fit, not after it
-    files = ["result.json", "fit.png", "model.npy"]
-    if robustness:
-        files += ["robustness.json", "robustness.md"]
-    if fainter:
-        files += ["fainter.json", "fainter.md"]
-    with output_dir(out, overwrite=overwrite, inputs=[manifest], will_write=files,
-                    command="fit-image") as tmp:
+    # every file the manifest made difstar read is an input: never replaced, never held
+    inputs = [manifest, *loaded[2].get("inputs", ())]
+    with output_dir(out, overwrite=overwrite, inputs=inputs, command="fit-image") as tmp:
         summary = _run(manifest, loaded, t0, tmp, verbose=verbose, max_steps=max_steps,
                        final=out)
         if robustness:

@@ -189,7 +189,7 @@ def write_dng(
                 compression=None,
                 rowsperstrip=h,
                 metadata=None,
-                software="difstar",
+                software=SOFTWARE,
                 extratags=tags,
             )
         with open(tmp, "rb+") as fh:
@@ -249,3 +249,25 @@ def synthesize_capture(
     electrons = rng.poisson(z * (white - b) * gain_e_per_dn)
     dn = electrons / gain_e_per_dn + rng.normal(0.0, read_noise_dn, size=z.shape) + b
     return np.round(np.clip(dn, 0.0, min(white, 65535.0))).astype(np.uint16)
+
+
+#: the TIFF Software tag :func:`write_dng` writes, by which difstar knows its own DNGs
+SOFTWARE = "difstar"
+
+
+def written_by_difstar(path: str | Path) -> bool:
+    """True only for a regular file that is a TIFF/DNG whose first image's ``Software``
+    tag reads ``difstar`` (a DNG :func:`write_dng` wrote). Reads the header only; any
+    other file, or one that cannot be read, is False (a camera's own RAW file is never
+    taken for difstar's)."""
+    import tifffile
+
+    p = Path(path)
+    if p.is_symlink() or not p.is_file():
+        return False
+    try:
+        with tifffile.TiffFile(p) as tif:
+            tag = tif.pages[0].tags.get("Software")
+            return tag is not None and str(tag.value).strip("\x00 ") == SOFTWARE
+    except Exception:  # noqa: BLE001 - not a TIFF difstar can read: not difstar's
+        return False

@@ -1,45 +1,71 @@
 """Writing results whole or not at all, and never over anything that is not difstar's.
 
-The output policy (README, "The command line"):
+The output policy (README, "Where difstar writes"):
 
 - difstar writes a result folder only where it creates it. :func:`output_dir` makes a
-  temporary folder beside the destination (``.NAME.difstar-tmp-PID-XXXX``, holding the
-  marker file :data:`MARKER`), the command writes into it, and only when everything is
-  written is it renamed into place; on any error, Ctrl-C or SIGTERM it is removed and
-  nothing appears. Temporary folders left by a killed run (its process gone) are removed
-  the next time difstar writes beside them.
+  temporary folder beside the destination, ``.NAME.difstar-tmp-TOKEN`` (TOKEN: 16 random
+  hex digits), whose marker file :data:`MARKER` records that same token, this host's name
+  and the process; the run holds an exclusive lock (``flock``) on that marker while it
+  works. The command writes into the folder, and only when everything is written is it
+  renamed into place; on any error, Ctrl-C or SIGTERM it is removed and nothing appears.
+- A temporary folder left by a killed run is removed the next time difstar writes beside
+  it only when *all* of these hold: its name has the pattern above, it holds a marker whose
+  token is the one in its name, the marker was written on this host, and no process holds
+  its lock. Anything else (a user's entry with a look-alike name, a run on another host or
+  in a container sharing the folder, a live run) is left alone. Temporary *files*
+  (``example --out``) are never removed by a later run.
 - An existing folder is replaced only with ``--overwrite``, and only when difstar made
-  it: it holds the marker, and every file in it is one the marker lists (``difstar
-  synth`` may also replace a folder holding exactly the captures it writes). A folder
-  with any other file, a file, the current folder, or a folder holding one of the
-  command's inputs is never replaced.
-- :func:`check_output_free` checks all of this, and that the destination is writable,
-  before any computation.
+  it: it holds the marker, and every file in it is one the marker lists. The one
+  exception: ``difstar synth`` may replace a folder with no marker whose every entry is a
+  capture its manifest names *and* a DNG that difstar wrote (its TIFF ``Software`` tag
+  reads ``difstar``); a camera's own RAW file under a capture's name is never replaced.
+  A folder with any other file, a file, the current folder, or a folder holding one of
+  the command's inputs (every file it reads: manifest, data, σ maps, source images,
+  captures) is never replaced.
+- The replaced folder is first moved *into* the new temporary folder
+  (:data:`DISPLACED`), then the temporary folder is renamed into place, then the old
+  result is removed; a run killed between the two renames leaves a temporary folder that
+  the next run puts back (the old result returns to its place).
+- :func:`check_output_free` checks all of this, that the destination is writable and
+  that the disk has room for what the command expects to write, before any computation.
+  A disk that fills up while writing is reported naming the destination; nothing stays.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import re
 import secrets
 import shutil
 import signal
+import socket
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
 
 from .._validate import InputError
 
+try:  # POSIX; elsewhere no lock can be checked, so no temporary folder is ever removed
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None
+
 #: the file that marks a folder as difstar's own output (JSON: the files it wrote)
 MARKER = ".difstar-output"
-_STALE = re.compile(r"^\.(?P<name>.+)\.difstar-(?P<kind>tmp|old)-(?P<pid>\d+)-[A-Za-z0-9_-]+$")
+#: inside a temporary folder: the result it replaces, until the new one is in place
+DISPLACED = ".difstar-displaced"
+_TMP = re.compile(r"^\.(?P<name>.+)\.difstar-tmp-(?P<token>[0-9a-f]{16})$")
+#: the least free space an output folder needs beyond what the command expects to write
+_MIN_FREE = 1 << 20
+_DISK_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS}
 
 
 class OutputError(InputError):
@@ -55,24 +81,12 @@ class Terminated(SystemExit):
     temporary folder is removed (exit status 128 + signal number)."""
 
 
-def _pid_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    except OSError:
-        return False
-    return True
-
-
 def read_marker(folder: Path) -> dict | None:
     """The marker of a folder difstar made, or None."""
     p = Path(folder) / MARKER
     try:
+        if p.is_symlink() or not p.is_file() or p.stat().st_size > 1 << 20:
+            return None
         doc = json.loads(p.read_text())
     except (OSError, ValueError):
         return None
@@ -81,17 +95,54 @@ def read_marker(folder: Path) -> dict | None:
     return doc
 
 
-def _write_marker(folder: Path, files: list[str], command: str) -> None:
-    doc = {"difstar": "output", "version": 1, "command": command, "pid": os.getpid(),
+def _write_marker(folder: Path, files: list[str], command: str, token: str) -> None:
+    """Write (or rewrite in place: the same file, so that its lock stays) the marker."""
+    doc = {"difstar": "output", "version": 2, "command": command, "token": token,
+           "host": socket.gethostname(), "pid": os.getpid(),
            "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "files": sorted(files)}
-    (Path(folder) / MARKER).write_text(json.dumps(doc, indent=1) + "\n")
+    with open(Path(folder) / MARKER, "r+" if (Path(folder) / MARKER).exists() else "w") as fh:
+        fh.seek(0)
+        fh.write(json.dumps(doc, indent=1) + "\n")
+        fh.truncate()
+
+
+def _lock(folder: Path):
+    """An open file holding an exclusive lock on ``folder``'s marker (None where locks
+    are not available); the lock lasts while the file stays open."""
+    if fcntl is None:
+        return None
+    fh = open(Path(folder) / MARKER, "r+")
+    try:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        return None
+    return fh
+
+
+def _abandoned(entry: Path) -> bool:
+    """True only for a temporary folder of a difstar run that is certainly over: named
+    like one, holding a marker with the token of its name written on this host, and
+    with no process holding the marker's lock."""
+    m = _TMP.match(entry.name)
+    if not m or entry.is_symlink() or not entry.is_dir():
+        return False
+    marker = read_marker(entry)
+    if marker is None or marker.get("token") != m["token"]:
+        return False
+    if marker.get("host") != socket.gethostname():
+        return False
+    lock = _lock(entry)
+    if lock is None:  # held by a live run, or no locks here: not ours to judge
+        return False
+    lock.close()
+    return True
 
 
 def remove_stale(parent: str | Path) -> list[Path]:
     """Remove the temporary folders that killed difstar runs left in ``parent`` (only
-    those named by difstar whose process is gone; a temporary folder must also hold the
-    marker). A displaced old result whose replacement never arrived is put back.
-    Returns what was removed or restored."""
+    those :func:`_abandoned` proves are; see the module's docstring). A replaced result
+    whose replacement never arrived is put back in its place. Returns what was removed."""
     parent = Path(parent)
     done = []
     try:
@@ -99,26 +150,17 @@ def remove_stale(parent: str | Path) -> list[Path]:
     except OSError:
         return done
     for e in entries:
-        m = _STALE.match(e.name)
-        if not m or e.is_symlink() or _pid_alive(int(m["pid"])):
+        if not _abandoned(e):
             continue
-        if m["kind"] == "tmp" and e.is_file():  # write_file_atomic's temporary file
+        displaced = e / DISPLACED
+        dest = parent / _TMP.match(e.name)["name"]
+        if displaced.is_dir() and not displaced.is_symlink() and not dest.exists() \
+                and not dest.is_symlink():
             with contextlib.suppress(OSError):
-                e.unlink()
-            done.append(e)
-            continue
-        if not e.is_dir():
-            continue
-        if m["kind"] == "tmp":
-            if read_marker(e) is None:
-                continue
-            shutil.rmtree(e, ignore_errors=True)
-        else:
-            dest = parent / m["name"]
-            if not dest.exists() and not dest.is_symlink():
-                os.replace(e, dest)
-            else:
-                shutil.rmtree(e, ignore_errors=True)
+                os.replace(displaced, dest)
+        if (e / DISPLACED).exists():
+            continue  # the old result could not be put back: keep it where it is
+        shutil.rmtree(e, ignore_errors=True)
         done.append(e)
     return done
 
@@ -140,12 +182,22 @@ def _probe_writable(folder: Path, dest: Path, what: str) -> None:
     os.rmdir(probe)
 
 
+def _free_bytes(folder: Path) -> int | None:
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return None
+
+
 def check_output_free(dest: str | Path, *, overwrite: bool = False, inputs: Iterable = (),
-                      will_write: Iterable[str] | None = None, what: str = "--out") -> None:
+                      replaceable: Callable[[Path], bool] | None = None,
+                      expected_bytes: int = 0, what: str = "--out") -> None:
     """Raise :class:`OutputError` (before any work) unless ``dest`` may be written by
-    the policy above. ``inputs``: the command's input files (never replaced, never
-    inside the destination). ``will_write``: names the command writes, which an
-    existing folder may hold in place of a marker."""
+    the policy above. ``inputs``: every file the command reads (never replaced, never
+    inside the destination). ``replaceable``: for a folder with no marker, a test each
+    of its entries must pass for ``--overwrite`` to replace it (``synth``: a DNG difstar
+    wrote under a capture's name); without it such a folder is never replaced.
+    ``expected_bytes``: about how much the command will write (the disk must have it)."""
     dest = Path(os.path.abspath(dest))
     real = dest.resolve()
     cwd = Path.cwd().resolve()
@@ -188,24 +240,55 @@ def check_output_free(dest: str | Path, *, overwrite: bool = False, inputs: Iter
                     "or pass --overwrite to replace a folder difstar made."
                 )
             marker = read_marker(dest)
-            allowed = set(marker.get("files", [])) if marker else set()
-            ww = set(will_write or ())
-            if marker is None and not ww:
+            if marker is not None:
+                allowed = {f for f in marker.get("files", []) if isinstance(f, str)}
+                extra = sorted(entries - allowed - {MARKER, DISPLACED})
+                if extra:
+                    shown = ", ".join(extra[:3]) + (f" and {len(extra) - 3} more"
+                                                    if len(extra) > 3 else "")
+                    raise OutputExistsError(
+                        f"{what} {dest} holds files difstar did not write ({shown}); "
+                        "--overwrite never replaces a folder holding other files: move them "
+                        "away or choose another --out."
+                    )
+            elif replaceable is None:
                 raise OutputExistsError(
                     f"{what} {dest} was not made by difstar (it has no {MARKER} marker); "
                     "--overwrite replaces only a folder difstar made: choose another --out "
                     "or empty it yourself."
                 )
-            extra = sorted(entries - allowed - ww - {MARKER})
-            if extra:
-                shown = ", ".join(extra[:3]) + (f" and {len(extra) - 3} more" if len(extra) > 3
-                                                else "")
-                raise OutputExistsError(
-                    f"{what} {dest} holds files difstar did not write ({shown}); "
-                    "--overwrite never replaces a folder holding other files: move them "
-                    "away or choose another --out."
-                )
+            else:
+                foreign = sorted(n for n in entries if not replaceable(dest / n))
+                if foreign:
+                    shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more"
+                                                      if len(foreign) > 3 else "")
+                    raise OutputExistsError(
+                        f"{what} {dest} has no {MARKER} marker and holds files difstar did "
+                        f"not write ({shown}); --overwrite never replaces them: move them "
+                        "away or choose another --out."
+                    )
     _probe_writable(anc, dest, what)
+    free = _free_bytes(anc)
+    need = int(expected_bytes) + _MIN_FREE
+    if free is not None and free < need:
+        raise OutputError(
+            f"{what} {dest}: the disk holding {anc} has {_fmt(free)} free and this command "
+            f"writes about {_fmt(need)}; free some space or choose an --out on another disk."
+        )
+
+
+def _fmt(n: int) -> str:
+    for unit, size in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= size:
+            return f"{n / size:.1f} {unit}"
+    return f"{n} bytes"
+
+
+def _disk_error(exc: OSError, dest: Path, what: str) -> OutputError:
+    return OutputError(
+        f"{what} {dest}: {exc.strerror or exc} while writing the results; nothing was "
+        "written. Free some space (or write access) or choose an --out on another disk."
+    )
 
 
 def _make_parents(folder: Path) -> list[Path]:
@@ -275,54 +358,67 @@ def _signals_raise():
 
 @contextlib.contextmanager
 def output_dir(dest: str | Path, *, overwrite: bool = False, inputs: Iterable = (),
-               will_write: Iterable[str] | None = None, command: str = "difstar",
-               what: str = "--out"):
+               replaceable: Callable[[Path], bool] | None = None, expected_bytes: int = 0,
+               command: str = "difstar", what: str = "--out"):
     """Yield a fresh temporary folder beside ``dest``; rename it into place when the block
     ends without error (with the marker listing the files), remove it otherwise.
 
-    Enter it before the computation: the destination is checked (and stale temporary
+    Enter it before the computation: the destination is checked (and abandoned temporary
     folders beside it removed) at once, and a refused or failed run leaves nothing."""
     inputs = list(inputs)
-    will_write = None if will_write is None else list(will_write)
     dest = Path(os.path.abspath(dest))
-    check_output_free(dest, overwrite=overwrite, inputs=inputs, will_write=will_write,
-                      what=what)
+    check = dict(overwrite=overwrite, inputs=inputs, replaceable=replaceable, what=what)
+    check_output_free(dest, expected_bytes=expected_bytes, **check)
     with _signals_raise():
         made = []
         tmp = None
+        lock = None
         try:
             made = _make_parents(dest.parent)
             remove_stale(dest.parent)
+            token = secrets.token_hex(8)
+            tmp = dest.parent / f".{dest.name}.difstar-tmp-{token}"
             try:
-                tmp = Path(tempfile.mkdtemp(
-                    prefix=f".{dest.name}.difstar-tmp-{os.getpid()}-", dir=dest.parent))
+                umask = os.umask(0)
+                os.umask(umask)
+                os.mkdir(tmp, 0o777 & ~umask)
             except OSError as exc:
+                tmp = None
                 raise OutputError(f"{what} {dest}: cannot write there ({exc.strerror}).") \
                     from None
-            _write_marker(tmp, [], command)
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; results are shared
-            yield tmp
+            _write_marker(tmp, [], command, token)
+            lock = _lock(tmp)
+            try:
+                yield tmp
+            except OSError as exc:
+                if exc.errno in _DISK_ERRORS:
+                    raise _disk_error(exc, dest, what) from None
+                raise
             _check_terminated()
             files = [e.name for e in tmp.iterdir() if e.name != MARKER]
-            _write_marker(tmp, files, command)
+            try:
+                _write_marker(tmp, files, command, token)
+            except OSError as exc:
+                if exc.errno in _DISK_ERRORS:
+                    raise _disk_error(exc, dest, what) from None
+                raise
             # the destination may have changed while we computed: check again
-            check_output_free(dest, overwrite=overwrite, inputs=inputs,
-                              will_write=will_write, what=what)
+            check_output_free(dest, **check)
             _check_terminated()
             if dest.exists():
-                old = dest.parent / f".{dest.name}.difstar-old-{os.getpid()}-{secrets.token_hex(4)}"
-                os.replace(dest, old)
+                # the old result moves into our own marked folder first: a run killed
+                # between the two renames leaves it there, and the next run puts it back
+                os.replace(dest, tmp / DISPLACED)
                 try:
                     os.replace(tmp, dest)
                 except BaseException:
-                    os.replace(old, dest)
+                    os.replace(tmp / DISPLACED, dest)
                     raise
-                shutil.rmtree(old, ignore_errors=True)
+                tmp = None
+                shutil.rmtree(dest / DISPLACED, ignore_errors=True)
             else:
                 os.replace(tmp, dest)
-            tmp = None
+                tmp = None
         except BaseException:
             if tmp is not None:
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -330,6 +426,9 @@ def output_dir(dest: str | Path, *, overwrite: bool = False, inputs: Iterable = 
                 with contextlib.suppress(OSError):
                     d.rmdir()
             raise
+        finally:
+            if lock is not None:
+                lock.close()
 
 
 def write_file_atomic(path: str | Path, data: str | bytes, *, overwrite: bool = False,
@@ -348,23 +447,38 @@ def write_file_atomic(path: str | Path, data: str | bytes, *, overwrite: bool = 
     for inp in inputs:
         if inp is not None and Path(inp).resolve() == path.resolve():
             raise OutputError(f"{what} {path} is an input of this command; choose another path.")
+    if path.is_symlink():
+        raise OutputError(f"{what} {path} is a symbolic link; give a new file name.")
     if path.is_dir():
         raise OutputExistsError(f"{what} {path} is a folder; give a file name.")
     if path.exists() and not overwrite:
         raise OutputExistsError(f"{what} {path} exists; pass --overwrite to replace it.")
     remove_stale(parent)
+    blob = data.encode() if isinstance(data, str) else data
+    free = _free_bytes(parent)
+    if free is not None and free < len(blob) + _MIN_FREE:
+        raise OutputError(f"{what} {path}: the disk has {_fmt(free)} free; free some space "
+                          "or choose another path.")
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.difstar-tmp-{os.getpid()}-",
-                                    dir=parent)
+        fd, name = tempfile.mkstemp(prefix=f".{path.name}.difstar-part-", dir=parent)
     except OSError as exc:
         raise OutputError(f"{what} {path}: cannot write there ({exc.strerror}).") from None
     try:
         with os.fdopen(fd, "wb") as fh:
-            fh.write(data.encode() if isinstance(data, str) else data)
+            fh.write(blob)
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(name, 0o666 & ~umask)
+        if path.exists() and not overwrite:  # appeared meanwhile
+            raise OutputExistsError(f"{what} {path} exists; pass --overwrite to replace it.")
         os.replace(name, path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            os.unlink(name)
+        if exc.errno in _DISK_ERRORS:
+            raise OutputError(f"{what} {path}: {exc.strerror}; nothing was written. Free "
+                              "some space or choose another path.") from None
+        raise
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(name)
