@@ -77,6 +77,8 @@ def plan_psf(
         raise ValueError(
             f"difstar.psf: accuracy must be a relative RMS error in [1e-7, 1); got {accuracy!r}.")
     h, w = _check_shape(shape)
+    n_lam = _check_counts(pupil, wavelength)
+    edges = _check_output_memory(pupil, (h, w), n_lam)
     vals = _concrete_all(pupil.max_radius() if max_radius is None else max_radius,
                          wavelength, z_image, defocus, pixel_pitch)
     if vals is None:
@@ -98,17 +100,107 @@ def plan_psf(
                        exact_ok=exact_ok, wavefront_slope=slope, scaling=scaling,
                        method=method)
     _check_cost(plan, (h, w), acc, p)
+    check_memory_of(plan, (h, w), n_lam, edges, p)
     return plan
 
 
 def _check_shape(shape) -> tuple[int, int]:
-    try:
-        h, w = (int(s) for s in shape)
-    except (TypeError, ValueError):
-        raise ValueError(f"difstar.psf: shape must be (H, W) pixels; got {shape!r}.") from None
-    if h < 2 or w < 2:
-        raise ValueError(f"difstar.psf: shape must be at least (2, 2) pixels; got {shape!r}.")
-    return h, w
+    """(H, W) whole numbers >= 2 (8.5 is refused, not truncated), naming ``shape``."""
+    from ._validate import check_shape
+
+    return check_shape(shape, "difstar.psf: shape", least=2)
+
+
+def _check_counts(pupil, wavelength) -> int:
+    """The wavelengths' count (static: works on tracers), refused above
+    ``MAX_WAVELENGTHS``, and the pupil's outlines' edges, above ``MAX_EDGES``."""
+    from ._validate import check_pupil_cost, check_wavelength_count
+
+    n_lam = math.prod(np.shape(wavelength))
+    check_wavelength_count(n_lam, "difstar.psf: wavelength")
+    check_pupil_cost(pupil, "difstar.psf: pupil")
+    return n_lam
+
+
+def _bytes(real: bool = True) -> int:
+    """Bytes of one real (or complex) element in the precision JAX computes in."""
+    item = 8 if jax.config.jax_enable_x64 else 4
+    return item if real else 2 * item
+
+
+def _edges(pupil) -> int:
+    """Straight edges of a polygonal pupil (the closed form's per-edge planes); 0 else."""
+    from ._pupil import Polygon, RegularPolygon
+
+    if isinstance(pupil, RegularPolygon):
+        return int(pupil.n)
+    if isinstance(pupil, Polygon):
+        return int(np.shape(pupil.vertices)[0])
+    return 0
+
+
+def _check_output_memory(pupil, shape, n_lam) -> int:
+    """Before planning: the windows alone (one per wavelength, stacked) must fit."""
+    from ._validate import check_memory, memory_budget
+
+    h, w = shape
+    need = (n_lam + 1) * h * w * _bytes()
+    if need > memory_budget():
+        side = max(2, int(math.isqrt(max(memory_budget() // ((n_lam + 1) * _bytes()), 0))))
+        check_memory(need, where="difstar.psf",
+                     what=f"the {h} x {w} px window ({n_lam} wavelength(s))",
+                     fix=f"use a smaller shape (at most about {side} x {side} px) or "
+                         "fewer wavelengths.")
+    return _edges(pupil)
+
+
+def psf_bytes(plan: PSFPlan, shape, n_wavelengths: int, edges: int, pixel_pitch: float) -> int:
+    """Lower estimate of the bytes :func:`psf` holds at once for this plan: the stacked
+    windows of every wavelength, and one wavelength's working arrays: the closed form's
+    plane pair per vertex (``_mft._edge_sum`` holds them together), or the sampled
+    pupil (× its sub-cells) and the transform's matrices or FFT passes."""
+    r, c = _bytes(), _bytes(real=False)
+    h, w = shape
+    nodes = plan.nodes
+    pts = h * w * nodes**2
+    need = n_wavelengths * h * w * r + 2 * pts * r
+    if plan.method == "exact":
+        return need + pts * r * 2 * max(int(edges), 3)
+    m = plan.pupil_window
+    need += (m * plan.subcells) ** 2 * (3 * r + c) + m * m * c
+    if plan.method == "mft":
+        return need + pts * c + m * (h + w) * nodes * c + m * min(h, w) * nodes * c
+    n = max(1, round(plan.period / pixel_pitch))
+    return need + m * n * c + nodes * m * w * c + w * n * c + pts * r
+
+
+def check_memory_of(plan: PSFPlan, shape, n_wavelengths: int, edges: int,
+                    pixel_pitch: float) -> None:
+    """:class:`~difstar._validate.InputError` when :func:`psf_bytes` exceeds the memory
+    budget (``DIFSTAR_MEMORY_LIMIT``, else the device's or the machine's memory)."""
+    from ._validate import check_memory, memory_budget
+
+    need = psf_bytes(plan, shape, n_wavelengths, edges, pixel_pitch)
+    budget = memory_budget()
+    if need <= budget:
+        return
+    h, w = shape
+    scale = math.sqrt(budget / need)
+    fit_h, fit_w = max(2, int(h * scale)), max(2, int(w * scale))
+    how = (f"the closed form, {edges} edges" if plan.method == "exact" else
+           f"{plan.method}, a {plan.pupil_window} x {plan.pupil_window} pupil grid"
+           + (f" x {plan.subcells}² sub-cells" if plan.subcells > 1 else ""))
+    fixes = [f"use a smaller shape (about {fit_h} x {fit_w} px may fit)"]
+    if plan.nodes > 1:
+        fixes.append(f"sampling='point' (this plan integrates each pixel on {plan.nodes}² "
+                     "nodes)")
+    if n_wavelengths > 1:
+        fixes.append("fewer wavelengths")
+    if plan.method != "exact":
+        fixes.append("a larger accuracy")
+    check_memory(need, where="difstar.psf",
+                 what=f"the {h} x {w} px window ({how}, {n_wavelengths} wavelength(s))",
+                 fix=", ".join(fixes) + ".")
 
 
 def _check_inputs(pupil, *, lams, z_r, p, r, dz):
@@ -200,6 +292,7 @@ def psf(
                                        and oversample >= 1):
         raise ValueError(f"oversample must be an integer >= 1; got {oversample!r}.")
     h, w = _check_shape(shape)
+    n_lam = _check_counts(pupil, wavelength)
     if plan is None:
         plan = plan_psf(pupil, wavelength=wavelength, z_image=z_image, defocus=defocus,
                         pixel_pitch=pixel_pitch, shape=(h, w), sampling=sampling,
@@ -208,6 +301,9 @@ def psf(
     elif not isinstance(plan, PSFPlan):
         raise TypeError(f"difstar.psf: plan must be a PSFPlan from difstar.plan_psf; got "
                         f"{type(plan).__name__}.")
+    else:  # a plan made for another window or wavelengths: its cost here, before any work
+        edges = _check_output_memory(pupil, (h, w), n_lam)
+        check_memory_of(plan, (h, w), n_lam, edges, float(pixel_pitch))
     lam = jnp.asarray(wavelength, dtype=float)
 
     def one(lam1):

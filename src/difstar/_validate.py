@@ -16,7 +16,12 @@ that one line and no traceback.
 - the PSF's scalars: :func:`check_psf_inputs` for concrete values (tracers pass through
   untouched) and :func:`refuse_nonfinite_traced` (``eqx.error_if``) inside jit.
 - sizes: :func:`check_crop` and :func:`memory_budget` (a grid that cannot fit in memory
-  is refused before anything is allocated).
+  is refused before anything is allocated); :func:`check_shape` (a window's (H, W)),
+  :func:`check_memory` (bytes estimated from the shapes against the budget),
+  :func:`check_wavelength_count` and :func:`check_pupil_cost` (wavelengths, polygon
+  vertices, blades and vanes counted from static shapes, so also inside jit).
+- the memory limit: :func:`parse_memory_limit` reads ``DIFSTAR_MEMORY_LIMIT`` strictly
+  (the one parser; ``difstar._batch`` uses it too).
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 from collections.abc import Iterable
 from typing import Any
 
@@ -40,6 +46,24 @@ MIN_CROP = 8
 MAX_VERTICES = 256
 MAX_BLADES = 64
 MAX_SPIDERS = 64
+#: at most this many wavelengths in one PSF or simulation (each is a PSF evaluation;
+#: the same bound as scene files'): difstar.psf's ``wavelength``, a spectral sensor's K,
+#: choose_wavelengths' ``max_wavelengths``
+MAX_WAVELENGTHS = 1024
+#: at most this many straight edges in one outline that difstar.psf / simulate take
+#: (Polygon vertices, RegularPolygon.n, CurvedIris.n × segments, vanes): the closed form
+#: costs time and memory per edge (1024 edges: 15 s and 1 GB for a 32 × 32 px window on
+#: a 2-core CPU; 4096: 53 s, 2.8 GB), and a regular polygon of 1024 edges is a circle to
+#: 5e-6 of its radius, which Circle gives at a fraction of the cost
+MAX_EDGES = 1024
+#: at most this many vertices / blades / vanes when a pupil is built (Polygon's check
+#: that it is simple costs O(n²): 2 s for 4096 vertices)
+MAX_BUILD_EDGES = 4096
+#: at most this many samples in a tabulated spectrum or a dense wavelength grid (NumPy
+#: tables, not PSFs: cheap, but not unbounded)
+MAX_SPECTRUM_SAMPLES = 100_000
+#: the environment variable that caps the memory difstar plans for
+ENV_MEMORY_LIMIT = "DIFSTAR_MEMORY_LIMIT"
 
 
 class InputError(ValueError):
@@ -59,6 +83,12 @@ class _NonFinite:
 
     def __repr__(self) -> str:
         return self.text
+
+
+class _Duplicated(dict):
+    """A JSON object in which a key was given twice (``duplicate``: the first such)."""
+
+    duplicate: Any = None
 
 
 def _path_str(path: Iterable) -> str:
@@ -130,9 +160,22 @@ def check_finite_doc(doc: Any, *, source: str = "<document>") -> None:
 
 def loads_strict(text: str, *, source: str = "<document>") -> Any:
     """``json.loads`` that refuses NaN, Infinity, numbers that overflow and deep nesting,
-    with the field's path in the message (:class:`InputError`)."""
+    with the field's path in the message (:class:`InputError`); also a key given twice
+    in one object (the field's path named)."""
+    duplicated = []
+
+    def pairs(kv):  # a key given twice: JSON readers silently keep the last one
+        d = dict(kv)
+        if len(d) != len(kv):
+            duplicated.append(True)
+            seen: set = set()
+            dup = next(k for k, _ in kv if k in seen or seen.add(k))
+            d = _Duplicated(d)
+            d.duplicate = dup
+        return d
+
     try:
-        doc = json.loads(text, parse_constant=_NonFinite)
+        doc = json.loads(text, parse_constant=_NonFinite, object_pairs_hook=pairs)
     except RecursionError:
         raise InputError(
             f"{source}: the JSON is nested too deeply to read; a difstar document needs "
@@ -144,6 +187,19 @@ def loads_strict(text: str, *, source: str = "<document>") -> Any:
         ) from None
     except ValueError as exc:  # e.g. an integer with more digits than Python converts
         raise InputError(f"{source}: not valid JSON: {exc}") from None
+    stack = [((), doc)] if duplicated else []  # the first key given twice, its path
+    while stack:
+        path, v = stack.pop()
+        if isinstance(v, _Duplicated):
+            raise InputError(
+                f"{source}: field {_path_str((*path, v.duplicate))}: the key "
+                f"{v.duplicate!r} is given more than once in one object; keep one (a JSON "
+                "reader would silently use only the last)."
+            )
+        if isinstance(v, dict):
+            stack.extend(((*path, k), x) for k, x in reversed(list(v.items())))
+        elif isinstance(v, list):
+            stack.extend(((*path, i), x) for i, x in reversed(list(enumerate(v))))
     check_finite_doc(doc, source=source)
     return doc
 
@@ -382,6 +438,10 @@ def check_camera_scene(camera, scene, *, where: str = "") -> None:
 
     p = f"{where}: " if where else ""
     lens, sen = camera.lens, camera.sensor
+    # counts first (static shapes: cheap, and before any per-element work)
+    check_pupil_cost(lens.pupil, f"{p}camera.lens.pupil")
+    check_wavelength_count(int(np.shape(sen.wavelengths)[-1]) if np.ndim(sen.wavelengths) == 2
+                           else 1, f"{p}camera.sensor.wavelengths (per channel)")
     check_pupil(lens.pupil, f"{p}camera.lens.pupil")
     check_obstruction(lens.pupil, f"{p}camera.lens.pupil")
     check_array(lens.focal_length, f"{p}camera.lens.focal_length", gt=0, fix="metres")
@@ -442,12 +502,52 @@ def check_crop(crop, field: str = "--crop") -> tuple[int, int]:
     return out[0], out[1]
 
 
+_MEMORY_UNITS = {"": 1, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40,
+                 "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40,
+                 "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12, "b": 1}
+MEMORY_LIMIT_FORM = ("a whole number of bytes, or a number with a unit K, M, G, T "
+                     "(powers of 1024, also KiB ... TiB) or KB, MB, GB, TB (powers of 1000), "
+                     "e.g. 8000000000, 512M or 8G")
+
+
+def parse_memory_limit(text, field: str = ENV_MEMORY_LIMIT) -> int:
+    """Bytes from ``text``: ``8000000000``, ``512M``, ``8G``, ``1.5GiB``, ``8GB`` (K, M,
+    G, T and KiB … TiB are powers of 1024, KB … TB of 1000). Anything else (``abc``, a
+    negative or zero size, a fraction of a byte) is an :class:`InputError` naming
+    ``field`` and the accepted form. The one parser of ``DIFSTAR_MEMORY_LIMIT``."""
+    raw = str(text).strip()
+    m = re.fullmatch(r"([0-9]{1,30}(?:\.[0-9]{1,30})?)\s*([A-Za-z]{0,3})", raw)
+    unit = m.group(2).lower() if m else ""
+    if not m or unit not in _MEMORY_UNITS:
+        raise InputError(f"{field}: {str(text)!r} is not a memory size; give "
+                         f"{MEMORY_LIMIT_FORM}.")
+    number = m.group(1)
+    if "." in number and unit in ("", "b"):
+        raise InputError(f"{field}: {str(text)!r} is not a whole number of bytes; give "
+                         f"{MEMORY_LIMIT_FORM}.")
+    value = int(float(number) * _MEMORY_UNITS[unit]) if "." in number else (
+        int(number) * _MEMORY_UNITS[unit])
+    if value < 1:
+        raise InputError(f"{field}: {str(text)!r} is no memory at all; give {MEMORY_LIMIT_FORM}.")
+    return value
+
+
+def memory_limit_from_env() -> int | None:
+    """``DIFSTAR_MEMORY_LIMIT`` in bytes (:func:`parse_memory_limit`), or None when it is
+    unset or empty; a bad value is an :class:`InputError`."""
+    env = os.environ.get(ENV_MEMORY_LIMIT)
+    if env is None or not env.strip():
+        return None
+    return parse_memory_limit(env)
+
+
 def memory_budget() -> int:
-    """Bytes a computation may use: ``DIFSTAR_MEMORY_LIMIT`` (bytes) if set, else the
-    accelerator's memory limit where JAX reports one, else the machine's memory."""
-    env = os.environ.get("DIFSTAR_MEMORY_LIMIT")
-    if env:
-        return int(float(env))
+    """Bytes a computation may use: ``DIFSTAR_MEMORY_LIMIT`` (:func:`parse_memory_limit`)
+    if set, else the accelerator's memory limit where JAX reports one, else the
+    machine's memory."""
+    env = memory_limit_from_env()
+    if env is not None:
+        return env
     try:
         import jax
 
@@ -460,6 +560,101 @@ def memory_budget() -> int:
         return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
     except (ValueError, OSError, AttributeError):
         return 16 * 2**30
+
+
+def check_memory(need: float, *, what: str, fix: str, where: str) -> None:
+    """Refuse (:class:`InputError`) a computation estimated to need ``need`` bytes when
+    that is more than :func:`memory_budget`: ``what`` says what needs it, ``fix`` what
+    would fit. Estimates come from static shapes, so this runs before any allocation
+    and also while tracing."""
+    budget = memory_budget()
+    if not need <= budget:
+        raise InputError(
+            f"{where}: {what} needs at least {fmt_bytes(need)} of memory, more than the "
+            f"{fmt_bytes(budget)} available ({ENV_MEMORY_LIMIT} overrides, e.g. 8G); {fix}"
+        )
+
+
+def check_shape(shape, field: str, *, least: int = 1) -> tuple[int, int]:
+    """(H, W): two whole numbers >= ``least`` (not bools, strings or fractions: 8.5 is
+    refused, not truncated), or :class:`InputError` naming ``field``."""
+    fix = f"give (H, W), two whole numbers of pixels >= {least}"
+    if isinstance(shape, (str, bytes)) or not hasattr(shape, "__len__") or len(shape) != 2:
+        raise InputError(f"{field}: {shape!r} is not (H, W); {fix}.")
+    out = []
+    for i, v in enumerate(shape):
+        if isinstance(v, (bool, np.bool_, str, bytes)) or v is None:
+            raise InputError(f"{field}[{i}]: {v!r} is not a whole number; {fix}.")
+        try:
+            x = float(v)
+        except (TypeError, ValueError, OverflowError):
+            raise InputError(f"{field}[{i}]: {v!r} is not a whole number; {fix}.") from None
+        if not math.isfinite(x) or x != math.floor(x):
+            raise InputError(f"{field}[{i}]: {_fmt(v)} is not a whole number; {fix}.")
+        if x < least:
+            raise InputError(f"{field}[{i}]: {_fmt(v)} is too small; {fix}.")
+        out.append(int(v) if isinstance(v, (int, np.integer)) else int(x))
+    return out[0], out[1]
+
+
+def check_wavelength_count(count: int, field: str) -> None:
+    """At most :data:`MAX_WAVELENGTHS` wavelengths (each is a PSF evaluation)."""
+    if count > MAX_WAVELENGTHS:
+        raise InputError(
+            f"{field}: {count} wavelengths; give at most {MAX_WAVELENGTHS} (each is a PSF "
+            f"evaluation: a few per channel meet a 1e-3 target, see "
+            f"difstar.choose_wavelengths)."
+        )
+
+
+def check_edge_count(count: int, field: str, what: str, *, most: int = MAX_EDGES) -> None:
+    """At most ``most`` (default :data:`MAX_EDGES`) straight edges / blades / vanes."""
+    if count > most:
+        raise InputError(
+            f"{field}: {count} {what}; give at most {most} (a regular polygon of that many "
+            f"edges is a circle to {1 - math.cos(math.pi / most):.1g} of its radius: use "
+            f"Circle)."
+        )
+
+
+def _outline_counts(pupil, field: str):
+    """(field, count, what) for every outline or vane set in ``pupil`` (static shapes
+    only: works on traced pupils)."""
+    from ._pupil import Obstructed, Polygon, RegularPolygon, Spiders, Struts, Transformed, Union
+    from ._pupil_curved import CurvedIris
+
+    stack = [(pupil, field)]
+    while stack:
+        p, f = stack.pop()
+        if isinstance(p, RegularPolygon):
+            yield f"{f}.n", int(p.n), "blades (edges)"
+        elif isinstance(p, Polygon):
+            yield f"{f}.vertices", int(np.shape(p.vertices)[0]), "vertices"
+        elif isinstance(p, CurvedIris):
+            yield f"{f}.n", int(p.n), "blades"
+            yield f"{f}.n x segments", int(p.n) * int(p.segments), "edges (blades x segments)"
+        elif isinstance(p, Spiders):
+            yield f"{f}.n", int(p.n), "vanes"
+        elif isinstance(p, Struts):
+            yield f"{f}.angles", int(np.shape(p.angles)[0]), "struts"
+        elif isinstance(p, Union):
+            stack.extend((m, f"{f}.members[{i}]") for i, m in enumerate(p.members))
+        elif isinstance(p, Obstructed):
+            stack.extend((q, f"{f}.{name}") for name, q in (
+                ("outer", p.outer), ("obstruction", p.obstruction), ("spiders", p.spiders))
+                if q is not None)
+        elif isinstance(p, Transformed):
+            stack.append((p.pupil, f"{f}.pupil"))
+
+
+def check_pupil_cost(pupil, field: str = "pupil") -> int:
+    """Every outline in ``pupil`` has at most :data:`MAX_EDGES` edges (vertices, blades,
+    vanes), else :class:`InputError` naming the field. Returns the largest count."""
+    largest = 0
+    for f, count, what in _outline_counts(pupil, field):
+        check_edge_count(count, f, what)
+        largest = max(largest, count)
+    return largest
 
 
 def fmt_bytes(b) -> str:
@@ -502,10 +697,13 @@ nonnegative_float = _arg_type("nonnegative_float", ge=0)
 
 
 __all__ = [
-    "InputError", "MAX_BLADES", "MAX_JSON_DEPTH", "MAX_SPIDERS", "MAX_VERTICES",
-    "MIN_CROP", "check_array", "check_camera_scene", "check_crop", "check_finite_doc",
-    "check_number", "check_obstruction", "check_polygon_vertices", "check_psf_inputs",
-    "check_pupil", "finite_float", "fmt_bytes", "json_depth", "loads_strict",
-    "memory_budget", "nonnegative_float", "nonnegative_int", "positive_float",
-    "positive_int", "refuse_nonfinite_traced",
+    "ENV_MEMORY_LIMIT", "InputError", "MAX_BLADES", "MAX_BUILD_EDGES", "MAX_EDGES",
+    "MAX_JSON_DEPTH", "MAX_SPECTRUM_SAMPLES", "MAX_SPIDERS", "MAX_VERTICES",
+    "MAX_WAVELENGTHS", "MEMORY_LIMIT_FORM", "MIN_CROP", "check_array",
+    "check_camera_scene", "check_crop", "check_edge_count", "check_finite_doc",
+    "check_memory", "check_number", "check_obstruction", "check_polygon_vertices",
+    "check_psf_inputs", "check_pupil", "check_pupil_cost", "check_shape",
+    "check_wavelength_count", "finite_float", "fmt_bytes", "json_depth", "loads_strict",
+    "memory_budget", "memory_limit_from_env", "nonnegative_float", "nonnegative_int",
+    "parse_memory_limit", "positive_float", "positive_int", "refuse_nonfinite_traced",
 ]

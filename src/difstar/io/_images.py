@@ -27,6 +27,10 @@ _TIFF = (".tif", ".tiff")
 _PNG = (".png",)
 _NPY = (".npy",)
 SUPPORTED = "FITS (.fits, .fit, .fts, .fits.gz, .fz), TIFF (.tif, .tiff), PNG (.png), NumPy (.npy)"
+#: the most values (pixels × planes) an image file may hold: its size is read from the
+#: header first and a larger file is refused before its data are read (a 10000 × 10000
+#: image is 0.8 GB as float64; a star's window is a few hundred pixels wide)
+MAX_VALUES = 100_000_000
 
 
 class ImageReadError(ValueError):
@@ -75,6 +79,17 @@ class ImageData:
 
 def _err(path: Path, problem: str) -> ImageReadError:
     return ImageReadError(f"{path}: {problem}")
+
+
+def _check_size(path: Path, shape) -> None:
+    """Refuse, from its header's ``shape``, an image too large to read (a decompression
+    bomb, a whole mosaic): before any of its data are read."""
+    shape = tuple(int(n) for n in shape)
+    total = math.prod(shape)
+    if total > MAX_VALUES:
+        raise _err(path, f"an image of shape {' × '.join(map(str, shape))} ({total} values) is "
+                         f"larger than difstar reads (at most {MAX_VALUES} values, e.g. "
+                         "10000 × 10000 pixels); cut out the star's region first")
 
 
 def _kind(path: Path) -> str | None:
@@ -197,9 +212,9 @@ def _fits_hdus(path: Path, hdul, hdu):
         def is_image(h):
             return isinstance(h, (fits.PrimaryHDU, fits.ImageHDU, fits.CompImageHDU))
 
-        if hdu is None:
+        if hdu is None:  # by the headers' shapes: no data read before the size check
             index = next((i for i, h in enumerate(hdul)
-                          if is_image(h) and h.data is not None and h.data.ndim >= 2), None)
+                          if is_image(h) and len(h.shape) >= 2), None)
             if index is None:
                 raise _err(path, f"no image HDU with 2-D data (HDUs: {', '.join(names)}); "
                                  "pass hdu= if the image is elsewhere")
@@ -211,9 +226,11 @@ def _fits_hdus(path: Path, hdul, hdu):
             if not is_image(hdul[index]):
                 raise _err(path, f"HDU {hdu!r} is a {type(hdul[index]).__name__}, not an "
                                  f"image (HDUs: {', '.join(names)})")
+            _check_size(path, hdul[index].shape)
             if hdul[index].data is None:
                 raise _err(path, f"HDU {hdu!r} holds no data (HDUs: {', '.join(names)})")
         h = hdul[index]
+        _check_size(path, h.shape)
         data = np.array(h.data, copy=True)
         header = _fits_header(h.header)
     return data, header, index
@@ -263,6 +280,7 @@ def _read_tiff(path: Path):
         if not tif.series:
             raise _err(path, "a TIFF file without image data")
         s = tif.series[0]
+        _check_size(path, s.shape)
         arr = s.asarray()
         axes = s.axes
         header = {}
@@ -278,10 +296,27 @@ def _read_tiff(path: Path):
     return arr, header
 
 
+_PNG_SAMPLES = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # IHDR colour type → samples per pixel
+
+
 def _read_png(path: Path):
     from PIL import Image
 
-    with Image.open(path) as im:
+    with path.open("rb") as fh:  # IHDR, the first chunk: width, height, depth, colour
+        head = fh.read(26)
+    if len(head) == 26 and head[12:16] == b"IHDR":
+        w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        n = _PNG_SAMPLES.get(head[25], 1)
+        _check_size(path, (h, w) if n == 1 else (n, h, w))
+    with warnings.catch_warnings():
+        # the size was checked above (Pillow's own bomb check would end in a traceback)
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        try:
+            im = Image.open(path)
+        except Image.DecompressionBombError as e:
+            raise _err(path, f"too large to read ({e}); cut out the star's region "
+                             "first") from e
+    with im:
         im.load()
         mode = im.mode
         header = {k: v for k, v in im.info.items() if isinstance(v, (str, int, float, tuple))}
@@ -299,6 +334,17 @@ def _read_png(path: Path):
 
 
 def _read_npy(path: Path):
+    fmt = np.lib.format
+    with path.open("rb") as fh:  # the header's shape first: no data read before the check
+        try:
+            version = fmt.read_magic(fh)
+            header = {(1, 0): fmt.read_array_header_1_0,
+                      (2, 0): fmt.read_array_header_2_0}.get(version)
+            shape = header(fh)[0] if header is not None else None
+        except ValueError as e:
+            raise _err(path, f"not a plain numeric .npy array ({e})") from e
+    if shape is not None:
+        _check_size(path, shape)
     try:
         return np.load(path, allow_pickle=False)
     except ValueError as e:
