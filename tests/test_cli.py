@@ -85,3 +85,14 @@ def test_example_roundtrips_through_schema(tmp_path):
     assert grid["crop"] == [1250, 1250]
     assert camera.lens.pupil.n == 7
     assert float(scene.exposure_time) == 2.5
+
+
+def test_version(capsys):
+    from importlib.metadata import version
+
+    from difstar.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"difstar {version('difstar')}"

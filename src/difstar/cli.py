@@ -225,12 +225,22 @@ class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescription
         return super()._get_help_string(action)
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("difstar")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "(not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="difstar", description=__doc__.split("\n\n")[0], formatter_class=_Formatter,
         epilog="Exit status: 0 success; 2 a user error (one line naming the field and the "
         "fix); 1 an internal failure; 130/143 interrupted (nothing is left behind).")
     ap.add_argument("--x64", action="store_true", help="compute in float64 (else float32)")
+    ap.add_argument("--version", action="version", version=f"difstar {_version()}")
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("predict", help="predict RAW mosaic + sRGB image for a scene",
