@@ -139,8 +139,9 @@ def device_memory(device=None) -> int:
     """Bytes free on ``device`` (default the first): ``memory_stats()``'s limit minus
     what is in use where the device reports it (GPUs), else ``DIFSTAR_MEMORY_LIMIT`` or
     the host's memory, shared by the host's devices (CPU devices share it)."""
-    from ._validate import memory_budget
+    from ._validate import memory_budget, memory_limit_from_env
 
+    env_limit = memory_limit_from_env()  # the one parser: a bad value is refused here too
     device = jax.devices()[0] if device is None else device
     try:
         stats = device.memory_stats() or {}
@@ -148,8 +149,8 @@ def device_memory(device=None) -> int:
         stats = {}
     if stats.get("bytes_limit"):
         return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
-    if os.environ.get("DIFSTAR_MEMORY_LIMIT"):
-        total = memory_budget()
+    if env_limit is not None:
+        total = env_limit
     else:
         try:
             total = int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))

@@ -4,6 +4,7 @@ of :mod:`._psf_engine`) and :func:`plan_psf` (its plan, made outside jit)."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -54,7 +55,7 @@ def plan_psf(
     z_image,
     defocus=0.0,
     pixel_pitch: float,
-    shape: tuple[int, int],
+    shape: Any,  # (H, W) whole numbers: _check_shape refuses the rest, naming it
     sampling: str = "pixel",
     accuracy: float | None = None,
     wavefront=None,
@@ -65,9 +66,33 @@ def plan_psf(
     """The :class:`PSFPlan` :func:`psf` would use (call it outside jit with concrete
     values and pass it as ``psf(..., plan=...)`` where the pupil's size, the wavelength or
     Δz are traced). ``max_radius`` overrides the pupil's (e.g. a bound over a design
-    family). Raises :class:`SamplingError` when the accuracy target cannot be met."""
-    from ._pupil import Polygon, RegularPolygon
+    family). Raises :class:`SamplingError` when the accuracy target cannot be met.
 
+    Cost is bounded before anything is allocated (``InputError``, a ``ValueError``,
+    naming the setting and the fix): ``shape`` whole numbers >= 2; at most
+    ``MAX_WAVELENGTHS`` (1024) wavelengths; at most ``MAX_EDGES`` (1024) edges per
+    outline (polygon vertices, blades, vanes; the closed form only up to
+    ``MAX_EXACT_EDGES``, 256, above which the pupil is sampled); and the memory the plan
+    needs (:func:`psf_bytes`) within ``DIFSTAR_MEMORY_LIMIT`` or the device's or the
+    machine's memory."""
+    _check_shape(shape)
+    n_lam = _check_counts(pupil, wavelength)
+    return _plan(pupil, wavelength=wavelength, z_image=z_image, defocus=defocus,
+                 pixel_pitch=pixel_pitch, shape=shape, sampling=sampling, accuracy=accuracy,
+                 wavefront=wavefront, scaling=scaling, method=method, max_radius=max_radius,
+                 n_eval=n_lam)
+
+
+def _plan(pupil, *, wavelength, z_image, defocus, pixel_pitch, shape, sampling, accuracy,
+          wavefront, scaling, method, max_radius, n_eval: int) -> PSFPlan:
+    """:func:`plan_psf` for ``n_eval`` wavelengths evaluated per call (its memory
+    estimate), after the counts were checked (``choose_grid`` plans one engine grid for
+    every channel's wavelengths, each channel a call of its own)."""
+    from ._pupil import Polygon, RegularPolygon
+    from ._validate import MAX_EXACT_EDGES, InputError, check_pupil_cost
+
+    check_pupil_cost(pupil, "difstar.psf: pupil")
+    n_lam = int(n_eval)
     if scaling not in SCALINGS:
         raise ValueError(f"scaling must be one of {SCALINGS}; got {scaling!r}.")
     if sampling not in SAMPLINGS:
@@ -77,7 +102,6 @@ def plan_psf(
         raise ValueError(
             f"difstar.psf: accuracy must be a relative RMS error in [1e-7, 1); got {accuracy!r}.")
     h, w = _check_shape(shape)
-    n_lam = _check_counts(pupil, wavelength)
     edges = _check_output_memory(pupil, (h, w), n_lam)
     vals = _concrete_all(pupil.max_radius() if max_radius is None else max_radius,
                          wavelength, z_image, defocus, pixel_pitch)
@@ -95,6 +119,13 @@ def plan_psf(
         raise ValueError("difstar.psf: the wavefront is traced; pass plan=difstar.plan_psf(...) "
                          "made with concrete coefficients of about the same size.")
     exact_ok = isinstance(pupil, (Polygon, RegularPolygon)) and wavefront is None
+    if exact_ok and edges > MAX_EXACT_EDGES:  # the closed form's cost grows with them
+        if method == "exact":
+            raise InputError(
+                f"difstar.psf: method='exact' with {edges} edges; the closed form takes at "
+                f"most {MAX_EXACT_EDGES} (its compile time and memory grow with each edge); "
+                "leave method unset or use method='mft' (a sampled pupil).")
+        exact_ok = False
     plan = plan_window(pupil_radius=r, wavelengths=lams.ravel(), z_image=z_r, defocus=dz,
                        pixel_pitch=p, shape=(h, w), sampling=sampling, accuracy=acc,
                        exact_ok=exact_ok, wavefront_slope=slope, scaling=scaling,
@@ -141,16 +172,14 @@ def _edges(pupil) -> int:
 
 def _check_output_memory(pupil, shape, n_lam) -> int:
     """Before planning: the windows alone (one per wavelength, stacked) must fit."""
-    from ._validate import check_memory, memory_budget
+    from ._validate import check_memory
 
     h, w = shape
     need = (n_lam + 1) * h * w * _bytes()
-    if need > memory_budget():
-        side = max(2, int(math.isqrt(max(memory_budget() // ((n_lam + 1) * _bytes()), 0))))
-        check_memory(need, where="difstar.psf",
-                     what=f"the {h} x {w} px window ({n_lam} wavelength(s))",
-                     fix=f"use a smaller shape (at most about {side} x {side} px) or "
-                         "fewer wavelengths.")
+    check_memory(need, where="difstar.psf",
+                 what=f"the {h} x {w} px window alone ({n_lam} wavelength(s))",
+                 fix="use a much smaller shape" + (" or fewer wavelengths." if n_lam > 1
+                                                    else "."))
     return _edges(pupil)
 
 
@@ -241,7 +270,7 @@ def psf(
     z_image,
     defocus=0.0,
     pixel_pitch: float,
-    shape: tuple[int, int],
+    shape: Any,  # (H, W) whole numbers: _check_shape refuses the rest, naming it
     sampling: str = "pixel",
     accuracy: float | None = None,
     wavefront=None,
@@ -259,6 +288,12 @@ def psf(
     The window is centred on the optical axis at pixel (H//2, W//2); rows run down the
     image and y points up: row k is at y = −(k − H//2)·p, column k at x = (k − W//2)·p.
     Pupil vertices are counter-clockwise with y up, a rotation is counter-clockwise.
+
+    Its cost is checked before anything is allocated or compiled, as :func:`plan_psf`
+    says (the shape, the wavelengths' count, the pupil's edges, the memory against
+    ``DIFSTAR_MEMORY_LIMIT`` or the machine's): an ``InputError`` (a ``ValueError``)
+    names the setting and the fix. The checks use static shapes, so they also run
+    under jit and grad.
 
     Args:
         pupil: exit-pupil shape (metres).
@@ -302,7 +337,14 @@ def psf(
         raise TypeError(f"difstar.psf: plan must be a PSFPlan from difstar.plan_psf; got "
                         f"{type(plan).__name__}.")
     else:  # a plan made for another window or wavelengths: its cost here, before any work
+        from ._validate import MAX_EXACT_EDGES, InputError
+
         edges = _check_output_memory(pupil, (h, w), n_lam)
+        if plan.method == "exact" and edges > MAX_EXACT_EDGES:
+            raise InputError(
+                f"difstar.psf: plan.method 'exact' with {edges} edges; the closed form takes "
+                f"at most {MAX_EXACT_EDGES}; make the plan with difstar.plan_psf for this "
+                "pupil (it samples the pupil instead).")
         check_memory_of(plan, (h, w), n_lam, edges, float(pixel_pitch))
     lam = jnp.asarray(wavelength, dtype=float)
 

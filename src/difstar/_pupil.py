@@ -339,6 +339,14 @@ def _check_ccw_simple(v: np.ndarray, name: str) -> None:
         raise ValueError(f"{name}: the polygon has zero area.")
 
 
+def _check_build_count(count, field: str, what: str) -> None:
+    """At most ``MAX_BUILD_EDGES`` vertices / blades / vanes when a pupil is built (a
+    static count; difstar.psf and simulate take at most ``MAX_EDGES`` per outline)."""
+    from ._validate import MAX_BUILD_EDGES, check_edge_count
+
+    check_edge_count(int(count), field, what, most=MAX_BUILD_EDGES)
+
+
 def _segments_cross(p1, p2, p3, p4) -> bool:
     def orient(a, b, c):
         return np.sign((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
@@ -390,6 +398,7 @@ class Polygon(AbstractPupil):
             raise ValueError(
                 f"Polygon.vertices must be an (n, 2) array with n >= 3; got shape {v.shape}."
             )
+        _check_build_count(v.shape[0], "Polygon.vertices", "vertices")
         if not jnp.issubdtype(v.dtype, jnp.floating):
             v = v.astype(float)
         concrete = _concrete(v)  # None for a tracer: checked when built outside jit
@@ -443,6 +452,7 @@ class RegularPolygon(AbstractPupil):
     def __init__(self, n: int, circumradius, rotation=0.0):
         if not isinstance(n, (int, np.integer)) or n < 3:
             raise ValueError(f"RegularPolygon.n must be an integer >= 3 (blade count); got {n!r}.")
+        _check_build_count(n, "RegularPolygon.n", "blades (edges)")
         self.n = int(n)
         self.circumradius = jnp.asarray(circumradius, dtype=jnp.result_type(float))
         self.rotation = jnp.asarray(rotation, dtype=jnp.result_type(float))
@@ -527,6 +537,7 @@ class Spiders(eqx.Module):
     def __init__(self, n: int, width, rotation=0.0, length=1.0):
         if not isinstance(n, (int, np.integer)) or n < 1:
             raise ValueError(f"Spiders.n must be an integer >= 1; got {n!r}.")
+        _check_build_count(n, "Spiders.n", "vanes")
         self.n = int(n)
         self.width = jnp.asarray(width, dtype=jnp.result_type(float))
         self.rotation = jnp.asarray(rotation, dtype=jnp.result_type(float))
@@ -592,6 +603,7 @@ class Struts(eqx.Module):
                 f"Struts.angles must be a 1-D array of at least one angle (radians); got "
                 f"shape {a.shape}.")
         k = a.shape[0]
+        _check_build_count(k, "Struts.angles", "struts")
 
         def per_strut(name, v):
             v = _float(v)

@@ -105,6 +105,11 @@ class CurvedIris(AbstractPupil):
             raise ValueError(f"CurvedIris.n must be an integer >= 3 (blade count); got {n!r}.")
         if not isinstance(segments, (int, np.integer)) or segments < 2:
             raise ValueError(f"CurvedIris.segments must be an integer >= 2; got {segments!r}.")
+        from ._pupil import _check_build_count
+
+        _check_build_count(n, "CurvedIris.n", "blades")
+        _check_build_count(int(n) * int(segments), "CurvedIris.n x segments",
+                           "edges (blades x segments)")
         self.n = int(n)
         self.segments = int(segments)
         dt = jnp.result_type(float)

@@ -17,6 +17,8 @@ from ._fft_size import fast_length as fast_length
 from ._model import Camera, Grid, Scene, geometry_of
 from ._psf_engine import SamplingError
 from ._sampling_rules import (
+    _grid_bytes,
+    check_cost,
     check_sampling,
     engine_psf_shape,
     needs_defocus,
@@ -39,17 +41,6 @@ DEFAULT_ACCURACY = 1e-2
 _CAL_A = 2e-2
 _CAL_ALPHA = 1.0
 _MIN_PADDING = 0.05
-
-
-_WORKING_ARRAYS = 1
-
-
-def _grid_bytes(side: int) -> int:
-    """Lower bound on the memory of a (side × side) sample grid: one complex array."""
-    import jax
-
-    item = 16 if jax.config.jax_enable_x64 else 8
-    return _WORKING_ARRAYS * item * int(side) ** 2
 
 
 def _max_side(budget: int) -> int:
@@ -92,19 +83,25 @@ def padding_for_accuracy(accuracy: float | None) -> float:
 def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scaling) -> Grid:
     """The grid of ``method="engine"``: the PSF through :func:`difstar.psf`'s engine on the
     offsets the crop needs, planned here (outside jit) for every channel's wavelengths."""
-    from ._psf import plan_psf
+    from ._psf import _plan
 
     g = geometry_of(camera, scene)
     ext = scene_extent(camera, scene)
     window = source_window_for(ext["object_radius_px"])
     shape = engine_psf_shape(tuple(crop), window)
-    plan = plan_psf(camera.lens.pupil, wavelength=np.ravel(np.asarray(camera.sensor.wavelengths)),
-                    z_image=float(g.z_exit_pupil), defocus=float(g.defocus),
-                    pixel_pitch=camera.sensor.pixel_pitch, shape=shape, sampling="point",
-                    accuracy=accuracy, wavefront=camera.lens.wavefront, scaling=scaling)
-    return Grid(n=max(shape), crop=tuple(int(c) for c in crop), use_defocus=plan.use_defocus,
+    lams = np.asarray(camera.sensor.wavelengths)
+    # one plan for every channel's wavelengths; each channel is one PSF call of its K
+    # (their count per channel was checked with the camera)
+    plan = _plan(camera.lens.pupil, wavelength=np.ravel(lams), z_image=float(g.z_exit_pupil),
+                 defocus=float(g.defocus), pixel_pitch=camera.sensor.pixel_pitch, shape=shape,
+                 sampling="point", accuracy=accuracy, wavefront=camera.lens.wavefront,
+                 scaling=scaling, method=None, max_radius=None,
+                 n_eval=lams.shape[-1] if lams.ndim == 2 else 1)
+    grid = Grid(n=max(shape), crop=tuple(int(c) for c in crop), use_defocus=plan.use_defocus,
                 raw_only=raw_only, scaling=scaling, method="engine", source_window=window,
                 psf_plan=plan)
+    check_cost(camera, grid, where="choose_grid")
+    return grid
 
 
 def choose_grid(
@@ -137,8 +134,16 @@ def choose_grid(
     — the closed-form PSF on exactly the offsets the crop needs, no grid and no aliasing
     (then ``n``, ``padding`` and ``accuracy`` do not apply) — and "fft" otherwise.
     """
+    from ._psf import _edges
     from ._pupil import Polygon, RegularPolygon
-    from ._validate import InputError, check_camera_scene, check_crop, fmt_bytes, memory_budget
+    from ._validate import (
+        MAX_EXACT_EDGES,
+        InputError,
+        check_camera_scene,
+        check_crop,
+        fmt_bytes,
+        memory_budget,
+    )
 
     crop = check_crop(crop, "choose_grid: crop")
     check_camera_scene(camera, scene, where="choose_grid")
@@ -159,8 +164,10 @@ def choose_grid(
     in_focus = not needs_defocus(camera, scene)
     spectral = camera.sensor.spectral_weights is not None
     aberrated = camera.lens.wavefront is not None
-    exact_ok = (in_focus and isinstance(camera.lens.pupil, (Polygon, RegularPolygon))
-                and not spectral and not aberrated)
+    polygon = isinstance(camera.lens.pupil, (Polygon, RegularPolygon))
+    # the closed form's cost grows with the edges: above MAX_EXACT_EDGES, the fft grid
+    few_edges = _edges(camera.lens.pupil) <= MAX_EXACT_EDGES
+    exact_ok = in_focus and polygon and few_edges and not spectral and not aberrated
     if method is None:
         if spectral or aberrated:
             method = "engine"
@@ -176,6 +183,11 @@ def choose_grid(
             "error; this camera has a spectral sensor or a lens wavefront: use method='engine' "
             "(the default for it).")
     if method == "exact":
+        if polygon and not few_edges:
+            raise InputError(
+                f"choose_grid: method='exact' with a pupil of {_edges(camera.lens.pupil)} "
+                f"edges; the closed form takes at most {MAX_EXACT_EDGES} (its compile time "
+                "and memory grow with each edge); use method='fft' or leave method unset.")
         if not exact_ok:
             raise ValueError(
                 "choose_grid: method='exact' needs an in-focus scene and a Polygon or "
@@ -196,6 +208,7 @@ def choose_grid(
                     source_window=window)
         if oversample is not None:
             check_sampling(camera, scene, grid)
+        check_cost(camera, grid, where="choose_grid")
         return grid
     if method != "fft":
         raise ValueError(f"choose_grid: method must be 'exact', 'fft' or None; got {method!r}.")
@@ -258,4 +271,5 @@ def choose_grid(
     )
     if overridden:
         check_sampling(camera, scene, grid)  # rules 1, 3, 4 with the fix in the message
+    check_cost(camera, grid, where="choose_grid")
     return grid

@@ -1,7 +1,9 @@
 """The sampling rules of ``simulate``'s grids, in one place (the PSF engine's own plan is
 in :mod:`._psf_engine`): the n × n grid's rules with their fixes (:func:`sampling_report`,
 :func:`check_sampling`), the windows that hold the pupil and the sources, whether the
-defocus phase matters, and the PSF offsets a crop needs.
+defocus phase matters, and the PSF offsets a crop needs; and the grid's cost
+(:func:`check_cost`: wavelengths, edges and memory from static shapes, before anything is
+allocated).
 
 For pixel pitch p, oversampling q, n pixels a side and the shortest wavelength λ:
 1. the pupil fits the frequency grid: p/q ≤ λ N_w;
@@ -93,8 +95,74 @@ def sampling_report(
     return fails
 
 
+#: complex (n·q)² arrays counted as a grid's least memory (choose_grid and simulate)
+_WORKING_ARRAYS = 1
+
+
+def _grid_bytes(side: int) -> int:
+    """Lower bound on the memory of a (side × side) sample grid: one complex array."""
+    item = 16 if jax.config.jax_enable_x64 else 8
+    return _WORKING_ARRAYS * item * int(side) ** 2
+
+
+def simulate_bytes(camera: Camera, grid: Grid) -> int:
+    """Lower estimate of the bytes :func:`difstar.simulate` holds for this grid, from
+    static shapes only (the grid, the wavelengths' count, the pupil's edges): the n·q
+    grid (fft); the crop's offsets and the closed form's plane per edge (exact); the
+    engine's PSF (:func:`difstar._psf.psf_bytes`) and the crop's offsets (engine)."""
+    from ._psf import _bytes, _edges, psf_bytes
+
+    if grid.method == "fft":
+        return _grid_bytes(grid.n * grid.oversample)
+    kh, kw = engine_psf_shape(grid.crop, grid.source_window)
+    edges = _edges(camera.lens.pupil)
+    if grid.method == "exact":
+        return _grid_bytes(max(kh, kw)) + 3 * edges * kh * kw * _bytes()
+    k = int(np.shape(camera.sensor.wavelengths)[-1]) if np.ndim(camera.sensor.wavelengths) == 2 \
+        else 1
+    return _grid_bytes(max(kh, kw)) + psf_bytes(grid.psf_plan, (kh, kw), k, edges,
+                                                float(camera.sensor.pixel_pitch))
+
+
+def check_cost(camera: Camera, grid: Grid, where: str = "difstar.simulate") -> None:
+    """Refuse (``InputError``, naming the setting and the fix) what cannot run in
+    reasonable time and memory, from static shapes (so also while tracing): more than
+    ``MAX_WAVELENGTHS`` wavelengths per channel, an outline of more than ``MAX_EDGES``
+    edges (``MAX_EXACT_EDGES`` on the closed form), or :func:`simulate_bytes` above the
+    memory budget (``DIFSTAR_MEMORY_LIMIT``, else the device's or machine's memory)."""
+    from ._psf import _edges
+    from ._validate import (
+        MAX_EXACT_EDGES,
+        InputError,
+        check_memory,
+        check_pupil_cost,
+        check_wavelength_count,
+    )
+
+    sen = camera.sensor
+    k = int(np.shape(sen.wavelengths)[-1]) if np.ndim(sen.wavelengths) == 2 else 1
+    check_wavelength_count(k, f"{where}: camera.sensor.wavelengths (per channel)")
+    check_pupil_cost(camera.lens.pupil, f"{where}: camera.lens.pupil")
+    edges = _edges(camera.lens.pupil)
+    if grid.method == "exact" and edges > MAX_EXACT_EDGES:
+        raise InputError(
+            f"{where}: Grid.method='exact' with a pupil of {edges} edges; the closed form "
+            f"takes at most {MAX_EXACT_EDGES} (its compile time and memory grow with each "
+            "edge); use method='fft' (difstar.choose_grid picks it).")
+    side = grid.n * grid.oversample
+    check_memory(simulate_bytes(camera, grid), where=where,
+                 what=(f"the {grid.method} grid ({grid.n} px a side, oversample "
+                       f"{grid.oversample}: {side} samples a side)" if grid.method == "fft"
+                       else f"the {grid.method} method on a {grid.crop[0]} x {grid.crop[1]} "
+                            f"px crop (source window {grid.source_window} px)"),
+                 fix="use a smaller crop, grid or padding (difstar.choose_grid sizes them).")
+
+
 def check_sampling(camera: Camera, scene: Scene, grid: Grid) -> None:
-    """Raise SamplingError when the grid breaks a sampling rule (concrete inputs only)."""
+    """Raise SamplingError when the grid breaks a sampling rule (concrete inputs only),
+    and ``InputError`` when its cost is out of bounds (:func:`check_cost`, from static
+    shapes: also inside jit)."""
+    check_cost(camera, grid)
     lens = camera.lens
     r_f = _concrete(lens.focus_distance)
     r_o = _concrete(scene.object_distance)

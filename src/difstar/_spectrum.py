@@ -89,6 +89,13 @@ def _nm(wavelengths_m) -> np.ndarray:
 
 
 def _check_wavelengths(wavelengths, name="wavelengths") -> np.ndarray:
+    from ._validate import MAX_SPECTRUM_SAMPLES, InputError
+
+    size = math.prod(np.shape(wavelengths))  # before a copy is made
+    if size > MAX_SPECTRUM_SAMPLES:
+        raise InputError(
+            f"{name}: {size} wavelengths; give at most {MAX_SPECTRUM_SAMPLES} (a 0.01 nm "
+            "grid over the visible has 40000).")
     wl = np.asarray(wavelengths, dtype=np.float64)
     if wl.ndim != 1 or wl.size < 1:
         raise ValueError(
@@ -386,11 +393,21 @@ def airy_family(radii: Any = None, *, reference: float = 550e-9
     return g
 
 
+def _check_node_count(k, field: str) -> int:
+    """A wavelength count 1 … ``MAX_WAVELENGTHS`` (each is a PSF evaluation), naming
+    ``field``."""
+    from ._validate import MAX_WAVELENGTHS, check_number
+
+    return check_number(k, field, ge=1, le=MAX_WAVELENGTHS, integer=True,
+                        fix="wavelengths per channel; each is a PSF evaluation")
+
+
 def gauss_nodes(points: Any, masses: Any, k: int) -> tuple[np.ndarray, np.ndarray]:
     """The k-point Gauss(–Christoffel) rule of a discrete measure Σ_i masses_i δ(λ − points_i)
     (masses ≥ 0): nodes (inside the points' range) and positive weights summing to
     Σ masses, exact for polynomials of degree ≤ 2k − 1. Lanczos (Stieltjes) with full
     reorthogonalisation, then Golub–Welsch. k = 1: the centroid."""
+    _check_node_count(k, "gauss_nodes: k")
     x = np.asarray(points, dtype=np.float64)
     m = np.asarray(masses, dtype=np.float64)
     keep = m > 0
@@ -453,9 +470,17 @@ def dense_weights(source: Any, sensitivities: Any, *, band: Any = None, transmis
         support = getattr(sens_f, "support", None)
         band = VISIBLE if support is None else (max(support[0], VISIBLE[0]),
                                                 min(support[1], VISIBLE[1]))
+    from ._validate import MAX_SPECTRUM_SAMPLES, InputError, check_number
+
     lo, hi = (float(b) for b in band)
-    if not (0 < lo < hi):
+    if not (0 < lo < hi and math.isfinite(hi)):
         raise ValueError(f"band must be (low, high) metres with 0 < low < high; got {band}.")
+    step = check_number(step, "step", gt=0, fix="metres, e.g. 5e-9")
+    if (hi - lo) / step > MAX_SPECTRUM_SAMPLES:
+        raise InputError(
+            f"step: {step:g} m over the band {lo:g}–{hi:g} m is {(hi - lo) / step:.3g} "
+            f"wavelengths; give at most {MAX_SPECTRUM_SAMPLES} (a step >= "
+            f"{(hi - lo) / MAX_SPECTRUM_SAMPLES:.3g} m, or a narrower band).")
     n = int(round((hi - lo) / step))
     wl = np.linspace(lo, lo + n * step, n + 1)
     wl = wl[wl <= hi * (1 + 1e-12)]
@@ -494,6 +519,7 @@ def choose_wavelengths(source: Any, sensitivities: Any, accuracy: float = 1e-3, 
     """
     if not (accuracy > 0):
         raise ValueError(f"accuracy must be > 0; got {accuracy}.")
+    max_wavelengths = _check_node_count(max_wavelengths, "choose_wavelengths: max_wavelengths")
     dense = dense_weights(source, sensitivities, band=band, transmission=transmission,
                           step=step)
     wl = dense.wavelengths
@@ -530,6 +556,7 @@ def error_table(source: Any, sensitivities: Any, ks: Sequence[int] = tuple(range
     """(channels, len(ks)): the error of the K-point Gauss rule against the dense
     ``step`` sum, for each K in ``ks`` (same measure as :func:`choose_wavelengths`).
     Use it to report error against the number of wavelengths."""
+    ks = [_check_node_count(k, f"error_table: ks[{i}]") for i, k in enumerate(ks)]
     dense = dense_weights(source, sensitivities, band=band, transmission=transmission,
                           step=step)
     wl = dense.wavelengths

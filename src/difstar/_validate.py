@@ -56,6 +56,12 @@ MAX_WAVELENGTHS = 1024
 #: a 2-core CPU; 4096: 53 s, 2.8 GB), and a regular polygon of 1024 edges is a circle to
 #: 5e-6 of its radius, which Circle gives at a fraction of the cost
 MAX_EDGES = 1024
+#: the closed form (method "exact") is unrolled edge by edge, so its compile time and
+#: memory grow with the edges (a jitted 16 px in-focus simulate: 9 s and 0.6 GB with 64
+#: edges, 65 s and 2.5 GB with 256): above this many edges difstar.psf and choose_grid
+#: sample the pupil instead (whose cost does not grow with them), and method="exact" is
+#: refused
+MAX_EXACT_EDGES = 256
 #: at most this many vertices / blades / vanes when a pupil is built (Polygon's check
 #: that it is simple costs O(n²): 2 s for 4096 vertices)
 MAX_BUILD_EDGES = 4096
@@ -562,7 +568,7 @@ def memory_budget() -> int:
         return 16 * 2**30
 
 
-def check_memory(need: float, *, what: str, fix: str, where: str) -> None:
+def check_memory(need: int | float, *, what: str, fix: str, where: str) -> None:
     """Refuse (:class:`InputError`) a computation estimated to need ``need`` bytes when
     that is more than :func:`memory_budget`: ``what`` says what needs it, ``fix`` what
     would fit. Estimates come from static shapes, so this runs before any allocation
@@ -610,11 +616,10 @@ def check_wavelength_count(count: int, field: str) -> None:
 def check_edge_count(count: int, field: str, what: str, *, most: int = MAX_EDGES) -> None:
     """At most ``most`` (default :data:`MAX_EDGES`) straight edges / blades / vanes."""
     if count > most:
-        raise InputError(
-            f"{field}: {count} {what}; give at most {most} (a regular polygon of that many "
-            f"edges is a circle to {1 - math.cos(math.pi / most):.1g} of its radius: use "
-            f"Circle)."
-        )
+        why = ("telescopes have a handful" if what in ("vanes", "struts") else
+               f"a regular polygon of that many edges is a circle to "
+               f"{1 - math.cos(math.pi / most):.1g} of its radius: use Circle")
+        raise InputError(f"{field}: {count} {what}; give at most {most} ({why}).")
 
 
 def _outline_counts(pupil, field: str):
@@ -698,6 +703,7 @@ nonnegative_float = _arg_type("nonnegative_float", ge=0)
 
 __all__ = [
     "ENV_MEMORY_LIMIT", "InputError", "MAX_BLADES", "MAX_BUILD_EDGES", "MAX_EDGES",
+    "MAX_EXACT_EDGES",
     "MAX_JSON_DEPTH", "MAX_SPECTRUM_SAMPLES", "MAX_SPIDERS", "MAX_VERTICES",
     "MAX_WAVELENGTHS", "MEMORY_LIMIT_FORM", "MIN_CROP", "check_array",
     "check_camera_scene", "check_crop", "check_edge_count", "check_finite_doc",
