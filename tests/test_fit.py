@@ -270,6 +270,9 @@ def test_difstar_fit_runs_end_to_end(tmp_path):
     assert p.returncode in (0, 1), p.stderr[-2000:]  # 1: criteria not met in 3 steps
     assert "Traceback" not in p.stderr
     res = json.loads((out / "fit_result.json").read_text())
+    from difstar.io._scene import validate
+
+    validate(res, "fit_result", source="fit_result.json")  # what it writes, its schema says
     labels = [s["label"] for s in res["convergence"]["stages"]]
     assert labels[-1] == "response-curve restarts" and len(labels) >= 3
     assert res["timing_s"]["first_step_since_start"] > 0

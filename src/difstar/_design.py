@@ -329,6 +329,17 @@ class IrisFamily(eqx.Module):
     rotation: Real = eqx.field(static=True, default=0.0)
     segments: int = eqx.field(static=True, default=16)
 
+    def __check_init__(self):
+        from ._validate import MAX_BLADES, check_number
+
+        check_number(self.n, "IrisFamily.n", integer=True, ge=3, le=MAX_BLADES,
+                     fix="the blade count")
+        check_number(self.area, "IrisFamily.area", gt=0, unit="m²",
+                     fix="the open area, e.g. π (f / 2N)²")
+        check_number(self.rotation, "IrisFamily.rotation", unit="rad")
+        check_number(self.segments, "IrisFamily.segments", integer=True, ge=1,
+                     fix="chords per blade arc")
+
     def radius_bound(self, margin: float = 1.25) -> float:
         """A bound (metres) on the circumradius of this family's irises: ``margin`` times
         that of the regular n-gon of the family's area (curvature only shrinks it; the
@@ -474,6 +485,10 @@ def design(
 
     The step is compiled once (``eqx.filter_jit``); objectives must be jittable.
     """
+    from ._validate import check_number
+
+    steps = check_number(steps, "steps", integer=True, ge=0,
+                         fix="the optimiser iterations")
     fn = _split_objective(objective)
     box = constraints
 

@@ -37,13 +37,87 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+#: f-numbers the study takes: faster irises need pupil grids growing as 1/N² (thousands of
+#: samples a side at f/1, over any memory below f/0.3) and leave the paraxial model of a
+#: 50 mm lens; slower ones put the Airy disc (radius 1.22 λN) beyond --quick's 64-pixel
+#: frame, where the spike and core measures mean nothing
+MIN_F_NUMBER, MAX_F_NUMBER = 1.0, 128.0
+#: optimiser steps per design at most (each step is a PSF and its gradient: seconds)
+MAX_STEPS = 10_000
+#: the bokeh weight at most: beyond, the halo anisotropy (~1e-3) no longer counts in the
+#: objective and float32 gradients can overflow
+MAX_BOKEH_WEIGHT = 1e6
+#: the study's flags by their Python names (``iris_study``'s keywords)
+STUDY_FLAGS = {"blades": "--blades", "f_number": "--f-number", "steps": "--steps",
+               "max_curvature": "--max-curvature", "vertex_bound": "--vertex-bound",
+               "bokeh_weight": "--bokeh-weight"}
+
+
+def check_f_number(f_number, field: str = "f_number") -> float:
+    from difstar._validate import check_number
+
+    return check_number(f_number, field, ge=MIN_F_NUMBER, le=MAX_F_NUMBER,
+                        fix="the study's iris at f/8 by default; faster needs pupil grids "
+                        "growing as 1/N², slower puts the Airy disc beyond the frame")
+
+
+def check_study_args(*, blades=9, f_number=8.0, steps=None, max_curvature=0.6,
+                     vertex_bound=0.015, bokeh_weight=0.0, learning_rate=0.1,
+                     names: dict | None = None) -> dict:
+    """The study's arguments checked (each alone, then the curvature and vertex bounds
+    together: every iris they allow must be convex), before anything is computed;
+    :class:`InputError` names the argument (``names``: Python name → what to call it,
+    e.g. :data:`STUDY_FLAGS`) and the fix. Returns them as numbers."""
+    from difstar._design import convexity_bound
+    from difstar._validate import MAX_BLADES, InputError, check_number
+
+    n = {k: k for k in (*STUDY_FLAGS, "learning_rate")} | dict(names or {})
+    out = {
+        "blades": check_number(blades, n["blades"], integer=True, ge=3, le=MAX_BLADES),
+        "f_number": check_f_number(f_number, n["f_number"]),
+        "steps": None if steps is None else check_number(
+            steps, n["steps"], integer=True, ge=1, le=MAX_STEPS,
+            fix="each step computes the PSFs and their gradient"),
+        "max_curvature": check_number(max_curvature, n["max_curvature"], gt=0, le=1,
+                                      fix="relative to the circumradius; 1 is a circle"),
+        "vertex_bound": check_number(vertex_bound, n["vertex_bound"], ge=0, lt=0.5,
+                                     fix="each vertex's relative radial and angular "
+                                     "deviation"),
+        "bokeh_weight": check_number(bokeh_weight, n["bokeh_weight"], ge=0,
+                                     le=MAX_BOKEH_WEIGHT,
+                                     fix="0 optimises the spikes alone"),
+        "learning_rate": check_number(learning_rate, n["learning_rate"], gt=0),
+    }
+    nb, mc, vb = out["blades"], out["max_curvature"], out["vertex_bound"]
+
+    def margin(v):
+        return convexity_bound(nb, max_curvature=mc, max_radial=v, max_angular=v)
+
+    if margin(vb) < 0:
+        lo, hi = 0.0, vb  # margin(0) >= 0 for any curvature <= 1
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if margin(mid) >= 0 else (lo, mid)
+        if lo < 1e-6:  # curvature 1: the blades are arcs of one circle, no room left
+            want = f"{n['vertex_bound']} 0"
+        else:  # rounded down to two digits
+            e = 10.0 ** (math.floor(math.log10(lo)) - 1)
+            want = f"{n['vertex_bound']} <= {math.floor(lo / e) * e:.2g}"
+        raise InputError(
+            f"{n['vertex_bound']}: {vb:g} with {n['max_curvature']} {mc:g} and "
+            f"{n['blades']} {nb} allows non-convex irises (a vertex can turn the wrong "
+            f"way); give {want} for these blades and curvature, or a smaller "
+            f"{n['max_curvature']}.")
+    return out
+
+
 def study_setup(*, blades: int = 9, f_number: float = 8.0, quick: bool = False):
     """(IrisFamily, PSFSetup, measure options) for the worked study."""
     from difstar._design import IrisFamily, PSFSetup
     from difstar._validate import MAX_BLADES, check_number
 
     blades = check_number(blades, "blades", integer=True, ge=3, le=MAX_BLADES)
-    f_number = check_number(f_number, "f_number", gt=0, fix="e.g. 8")
+    f_number = check_f_number(f_number)
     f = STUDY_DEFAULTS["focal_length"]
     area = math.pi * (f / (2 * f_number)) ** 2
     size, blur, dsize = (64, 40, 64) if quick else (96, 80, 128)
@@ -121,15 +195,14 @@ def iris_study(
 
     from difstar._design import bokeh_nonuniformity, design, halo_anisotropy
 
-    from difstar._validate import check_number
-
+    a = check_study_args(blades=blades, f_number=f_number, steps=steps,
+                         max_curvature=max_curvature, vertex_bound=vertex_bound,
+                         bokeh_weight=bokeh_weight, learning_rate=learning_rate)
+    blades, f_number = a["blades"], a["f_number"]
     family, setup, opts = study_setup(blades=blades, f_number=f_number, quick=quick)
-    steps = (12 if quick else 60) if steps is None else check_number(
-        steps, "steps", integer=True, ge=1)
-    max_curvature = check_number(max_curvature, "max_curvature", gt=0, le=1)
-    vertex_bound = check_number(vertex_bound, "vertex_bound", ge=0, lt=0.5)
-    bokeh_weight = check_number(bokeh_weight, "bokeh_weight", ge=0)
-    learning_rate = check_number(learning_rate, "learning_rate", gt=0)
+    steps = (12 if quick else 60) if a["steps"] is None else a["steps"]
+    max_curvature, vertex_bound = a["max_curvature"], a["vertex_bound"]
+    bokeh_weight, learning_rate = a["bokeh_weight"], a["learning_rate"]
     rb = setup.blur_radius(family.area)
 
     def objective(p):
@@ -223,27 +296,41 @@ def table_markdown(rows: dict) -> str:
 
 #: the most designs one sweep may hold
 MAX_SWEEP_DESIGNS = 100_000
+#: the largest sweep file read (100000 designs with 64 deviations each take ~60 MB)
+MAX_SWEEP_BYTES = 256 * 2**20
 _DESIGN_FIELDS = ("name", "curvature", "radial", "angular")
 _SWEEP_FIELDS = ("designs", "grid")
+
+
+def _number(value, field: str, **limits):
+    """:func:`difstar._validate.check_number`, refusing a number written as a string
+    (JSON's numbers have no quotes)."""
+    from difstar._validate import InputError, check_number
+
+    if isinstance(value, str):
+        fix = f" ({limits['fix']})" if "fix" in limits else ""
+        raise InputError(f"{field}: {value!r} is a string, not a number; write the number "
+                         f"without quotes{fix}.")
+    return check_number(value, field, **limits)
 
 
 def _vertex_values(value, field: str, blades: int):
     """One number (every vertex alike) or ``blades`` numbers, each in (−0.5, 0.5)."""
     import numpy as np
 
-    from difstar._validate import InputError, check_number
+    from difstar._validate import InputError
 
     if isinstance(value, (list, tuple)):
         if len(value) != blades:
             raise InputError(
                 f"{field}: {len(value)} values for a {blades}-blade iris; give one number "
                 f"(every vertex alike) or {blades} (one per vertex), or change --blades.")
-        vals = [check_number(v, f"{field}[{i}]", gt=-0.5, lt=0.5,
-                             fix="a relative deviation; 0 is the regular vertex")
+        vals = [_number(v, f"{field}[{i}]", gt=-0.5, lt=0.5,
+                        fix="a relative deviation; 0 is the regular vertex")
                 for i, v in enumerate(value)]
         return np.asarray(vals, float)
-    v = check_number(value, field, gt=-0.5, lt=0.5,
-                     fix="a relative deviation, or a list of one per vertex")
+    v = _number(value, field, gt=-0.5, lt=0.5,
+                fix="a relative deviation, or a list of one per vertex")
     return np.full(blades, v)
 
 
@@ -252,10 +339,43 @@ def parse_sweep(doc, *, blades: int, source: str = "sweep") -> list[dict]:
     ``{"designs": [{"name", "curvature", "radial", "angular"}, …], "grid": {"curvature":
     [...]}}`` (either or both; the grid's designs follow the listed ones). Returns
     ``[{"name", "curvature", "radial" (blades,), "angular" (blades,)}]``; anything else
-    raises :class:`InputError` naming the field and the fix."""
+    raises :class:`InputError` naming the field and the fix.
+
+    The document must satisfy the schema and the checks here, which also know
+    ``blades`` (one deviation per blade) and that names are unique; where both refuse
+    it, the message is the one from here (the field and the fix), else the schema's
+    (the field as a JSON path). Convexity is :func:`check_convex`'s (it computes the
+    outlines)."""
+    from difstar._validate import MAX_BLADES, InputError, check_number
+    from difstar.io._scene import SceneError, validate
+
+    blades = check_number(blades, "blades", integer=True, ge=3, le=MAX_BLADES)
+    if isinstance(doc, dict):  # the count first: the schema would look at every design
+        grid = doc.get("grid")
+        lists = (doc.get("designs"), grid.get("curvature") if isinstance(grid, dict) else None)
+        n = sum(len(v) for v in lists if isinstance(v, list))
+        if n > MAX_SWEEP_DESIGNS:
+            raise InputError(f"{source}: {n} designs (designs and grid.curvature); a "
+                             f"sweep holds at most {MAX_SWEEP_DESIGNS}: split it into "
+                             "several sweeps.")
+    try:
+        validate(doc, "design_sweep", source=source)
+    except SceneError as schema_error:
+        try:
+            _parse_sweep(doc, blades=blades, source=source)
+        except InputError as own:  # the field and the fix
+            raise own from None
+        except Exception:  # noqa: BLE001 - what the schema refused: its message
+            pass
+        raise SceneError(f"{str(schema_error).rstrip('.')}; see data_schemas/"
+                         "design_sweep.schema.json for what a sweep holds.") from None
+    return _parse_sweep(doc, blades=blades, source=source)
+
+
+def _parse_sweep(doc, *, blades: int, source: str) -> list[dict]:
     import numpy as np
 
-    from difstar._validate import InputError, check_number
+    from difstar._validate import InputError
 
     if not isinstance(doc, dict):
         raise InputError(f'{source}: expected a JSON object like {{"designs": [{{"name": '
@@ -291,8 +411,8 @@ def parse_sweep(doc, *, blades: int, source: str = "sweep") -> list[dict]:
                              "string (or leave it out).")
         out.append({
             "name": name,
-            "curvature": check_number(d["curvature"], f"{where}.curvature", ge=0, le=1,
-                                      fix="0 straight blades, 1 a circle"),
+            "curvature": _number(d["curvature"], f"{where}.curvature", ge=0, le=1,
+                                 fix="0 straight blades, 1 a circle"),
             "radial": _vertex_values(d.get("radial", 0.0), f"{where}.radial", blades),
             "angular": _vertex_values(d.get("angular", 0.0), f"{where}.angular", blades),
         })
@@ -306,10 +426,19 @@ def parse_sweep(doc, *, blades: int, source: str = "sweep") -> list[dict]:
         if not isinstance(cs, list) or not cs:
             raise InputError(f"{source}: grid.curvature: expected a non-empty list of "
                              "curvatures in [0, 1], e.g. [0, 0.3, 0.6].")
-        for j, c in enumerate(cs):
-            c = check_number(c, f"{source}: grid.curvature[{j}]", ge=0, le=1,
-                             fix="0 straight blades, 1 a circle")
-            out.append({"name": f"curvature={c:.4g}", "curvature": c,
+        values = [_number(c, f"{source}: grid.curvature[{j}]", ge=0, le=1,
+                          fix="0 straight blades, 1 a circle") for j, c in enumerate(cs)]
+        first = {}
+        for j, c in enumerate(values):
+            if c in first:
+                raise InputError(f"{source}: grid.curvature[{j}]: {c:g} repeats "
+                                 f"grid.curvature[{first[c]}]; give each curvature once.")
+            first[c] = j
+        digits = 4  # as few as tell the grid's values apart (a fine grid needs more)
+        while digits < 17 and len({f"{c:.{digits}g}" for c in values}) < len(values):
+            digits += 1
+        for c in values:
+            out.append({"name": f"curvature={c:.{digits}g}", "curvature": c,
                         "radial": np.zeros(blades), "angular": np.zeros(blades)})
     if not out:
         raise InputError(f"{source}: the sweep holds no design; list at least one.")
@@ -341,6 +470,17 @@ def curvature_grid(lo, hi, n, *, blades: int, flag: str = "--sweep-curvature") -
                          "e.g. 0 0.6 7.")
     return parse_sweep({"grid": {"curvature": [float(c) for c in np.linspace(lo, hi, n)]}},
                        blades=blades, source=flag)
+
+
+def check_convex(designs, *, blades: int = 9, f_number: float = 8.0,
+                 source: str = "sweep") -> None:
+    """Refuse (:class:`InputError`: the design, its name and the fix) a design of
+    :func:`parse_sweep`'s whose iris is not convex: exact margins from the outlines,
+    no PSF computed."""
+    from difstar._design import IrisFamily
+
+    area = math.pi * (STUDY_DEFAULTS["focal_length"] / (2 * check_f_number(f_number))) ** 2
+    _check_convex(IrisFamily(blades, area), designs, source)
 
 
 def _check_convex(family, designs, source: str) -> None:
@@ -384,13 +524,14 @@ def _params(item):
 
 def sweep_designs(designs, *, blades: int = 9, f_number: float = 8.0, quick: bool = False,
                   devices=None, chunk=None, progress=None, plan_out=None,
-                  source: str = "sweep") -> dict:
+                  source: str = "sweep", convexity_checked: bool = False) -> dict:
     """Every measure of many designs at once, the designs sharded over ``devices``
     (:func:`difstar.map_batch` over the stacked :class:`IrisParams`; ``chunk`` designs
     at a time at most, default memory-sized; ``progress(done, total, seconds)`` after
     each chunk). ``designs``: as :func:`parse_sweep` returns them (radial/angular
     (blades,) arrays). Returns ``{"config", "rows"}``: one row per design, in order, with
-    its parameters and the same measures as :func:`measure` (equal to them to rounding)."""
+    its parameters and the same measures as :func:`measure` (equal to them to rounding).
+    ``convexity_checked``: :func:`check_convex` has passed these designs already."""
     import numpy as np
 
     from difstar._batch import map_batch
@@ -402,7 +543,8 @@ def sweep_designs(designs, *, blades: int = 9, f_number: float = 8.0, quick: boo
                 raise ValueError(f"{source}: design {i} ({d['name']!r}).{k}: shape "
                                  f"{np.shape(d[k])}, expected ({family.n},) for "
                                  f"{family.n} blades.")
-    _check_convex(family, designs, source)
+    if not convexity_checked:
+        _check_convex(family, designs, source)
     values = measures_fn(family, setup, opts)
     out = map_batch(lambda b: values(_params(b))[0], _stack(designs), devices=devices,
                     chunk=chunk, progress=progress, plan_out=plan_out)
@@ -485,40 +627,87 @@ def plot_study(result: dict, path_prefix: Path) -> list[str]:
     return files
 
 
+#: the study's defaults for the flags a sweep does not take (None on the command line:
+#: given or not can then be told apart)
+STUDY_DEFAULT_ARGS = {"max_curvature": 0.6, "vertex_bound": 0.015, "bokeh_weight": 0.0}
+
+
+def _read_sweep_file(path: Path, *, blades: int) -> list[dict]:
+    """The designs of the ``--sweep`` file: strict JSON, then the schema and
+    :func:`parse_sweep`'s checks (no computation)."""
+    from difstar._validate import InputError, loads_strict
+
+    # as difstar.io._scene.read_json, which is typed to return an object: a sweep file
+    # holding an array is refused by parse_sweep, naming what a sweep is
+    fix = "give a sweep file (JSON, data_schemas/design_sweep.schema.json)"
+    if path.is_dir():
+        raise InputError(f"--sweep {path}: cannot read it: it is a folder; {fix}.")
+    if not path.exists():
+        raise InputError(f"--sweep {path}: cannot read it: it does not exist (check the "
+                         f"path); {fix}.")
+    if not path.is_file():
+        raise InputError(f"--sweep {path}: cannot read it: not a regular file; {fix}.")
+    size = path.stat().st_size
+    if size > MAX_SWEEP_BYTES:
+        raise InputError(f"--sweep {path}: {size / 2**20:.0f} MiB; a sweep of at most "
+                         f"{MAX_SWEEP_DESIGNS} designs takes far less than "
+                         f"{MAX_SWEEP_BYTES // 2**20} MiB: split it into several sweeps.")
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise InputError(f"--sweep {path}: cannot read it: not a text (UTF-8 JSON) file; "
+                         f"{fix}.") from None
+    except OSError as exc:
+        raise InputError(f"--sweep {path}: cannot read it ({exc.strerror or exc}); "
+                         f"{fix}.") from None
+    return parse_sweep(loads_strict(text, source=str(path)), blades=blades,
+                       source=str(path))
+
+
 def _cmd_sweep(a) -> int:
     """``difstar design --sweep FILE`` / ``--sweep-curvature LO HI N``: many designs'
-    measures at once, sharded over ``--devices``; writes sweep.json and sweep.md."""
+    measures at once, sharded over ``--devices``; writes sweep.json and sweep.md.
+    Everything is checked before anything is computed: the flags, the file (strict JSON,
+    the schema, the blade counts and names), the devices, then every iris's convexity
+    (its outline only)."""
     import os
 
     from difstar._batch import ENV_DEVICES, check_chunk, device_count, init_distributed
-    from difstar._validate import check_number, loads_strict
+    from difstar._validate import MAX_BLADES, InputError, check_number
     from difstar.io._output import check_output_free, output_dir, write_json
 
-    blades = check_number(a.blades, "--blades", integer=True, ge=3)
+    blades = check_number(a.blades, "--blades", integer=True, ge=3, le=MAX_BLADES)
+    f_number = check_f_number(a.f_number, "--f-number")
+    for key in ("steps", *STUDY_DEFAULT_ARGS):
+        if getattr(a, key, None) is not None:
+            flag = STUDY_FLAGS[key]
+            raise InputError(f"{flag}: a sweep measures its designs as given (nothing is "
+                             f"optimised); drop {flag}, or drop --sweep and "
+                             "--sweep-curvature to run the optimisation study.")
     designs = []
     inputs = []
     if a.sweep:
         path = Path(a.sweep)
-        try:
-            text = path.read_text()
-        except OSError as exc:
-            raise OSError(f"--sweep {path}: cannot read it ({exc.strerror or exc}); give "
-                          "an existing sweep file (data_schemas/design_sweep.schema.json)."
-                          ) from None
-        designs += parse_sweep(loads_strict(text, source=str(path)), blades=blades,
-                               source=str(path))
+        designs += _read_sweep_file(path, blades=blades)
         inputs.append(path)
     if a.sweep_curvature:
         designs += curvature_grid(*a.sweep_curvature, blades=blades)
-    names = [d["name"] for d in designs]
-    if len(set(names)) != len(names):
-        dup = next(n for n in names if names.count(n) > 1)
-        raise ValueError(f"--sweep and --sweep-curvature: two designs are named {dup!r}; "
-                         "give every design in the sweep file its own name.")
+    if len(designs) > MAX_SWEEP_DESIGNS:
+        raise InputError(f"--sweep and --sweep-curvature: {len(designs)} designs in all; a "
+                         f"sweep holds at most {MAX_SWEEP_DESIGNS}: split it into several.")
+    seen = set()
+    for d in designs:
+        if d["name"] in seen:
+            raise InputError(f"--sweep and --sweep-curvature: two designs are named "
+                             f"{d['name']!r}; give every design in the sweep file its own "
+                             "name.")
+        seen.add(d["name"])
     chunk = None if a.chunk is None else check_chunk(a.chunk, "--chunk")
     if a.devices is not None or os.environ.get(ENV_DEVICES, "").strip():
         init_distributed()
     n_dev = device_count(a.devices)
+    source = str(a.sweep or "--sweep-curvature")
+    check_convex(designs, blades=blades, f_number=f_number, source=source)
     check_output_free(Path(a.out), overwrite=a.overwrite, inputs=inputs)
     t0 = time.perf_counter()
     plans = []
@@ -526,8 +715,8 @@ def _cmd_sweep(a) -> int:
     with output_dir(Path(a.out), overwrite=a.overwrite, inputs=inputs,
                     command="design") as tmp:
         result = sweep_designs(
-            designs, blades=blades, f_number=a.f_number, quick=a.quick, devices=n_dev,
-            chunk=chunk, plan_out=plans, source=str(a.sweep or "--sweep-curvature"),
+            designs, blades=blades, f_number=f_number, quick=a.quick, devices=n_dev,
+            chunk=chunk, plan_out=plans, source=source, convexity_checked=True,
             progress=lambda d, n, sec: _log(f"difstar design: {d}/{n} designs ({sec:.1f} s)"))
         wall = time.perf_counter() - t0
         bad = [r["name"] for r in result["rows"]
@@ -551,8 +740,8 @@ def _cmd_sweep(a) -> int:
 
 
 def _cmd_design(a) -> int:
-    from difstar.io._output import check_output_free, output_dir, write_json
     from difstar._validate import InputError
+    from difstar.io._output import check_output_free, output_dir, write_json
 
     if a.sweep or a.sweep_curvature:
         return _cmd_sweep(a)
@@ -561,14 +750,16 @@ def _cmd_design(a) -> int:
             raise InputError(f"{flag}: only a sweep (--sweep FILE or --sweep-curvature LO "
                              f"HI N) evaluates several designs to share out; add one, or "
                              f"drop {flag} for the study.")
+    given = {k: getattr(a, k, None) for k in STUDY_DEFAULT_ARGS}
+    args = check_study_args(
+        blades=a.blades, f_number=a.f_number, steps=a.steps,
+        **{k: STUDY_DEFAULT_ARGS[k] if v is None else v for k, v in given.items()},
+        names=STUDY_FLAGS)
+    args.pop("learning_rate")
     check_output_free(Path(a.out), overwrite=a.overwrite)
     t0 = time.perf_counter()
     with output_dir(Path(a.out), overwrite=a.overwrite, command="design") as tmp:
-        result = iris_study(
-            blades=a.blades, f_number=a.f_number, quick=a.quick, steps=a.steps,
-            max_curvature=a.max_curvature, vertex_bound=a.vertex_bound,
-            bokeh_weight=a.bokeh_weight,
-        )
+        result = iris_study(quick=a.quick, **args)
         wall = time.perf_counter() - t0
         bad = [k for k, r in result["rows"].items()
                if not all(math.isfinite(v) for v in r.values())]
@@ -587,8 +778,7 @@ def _cmd_design(a) -> int:
 
 
 def register(subparsers, name: str) -> None:
-    from difstar._validate import MAX_BLADES, _arg_type, nonnegative_float, positive_float, \
-        positive_int
+    from difstar._validate import MAX_BLADES, _arg_type
 
     p = subparsers.add_parser(
         name, help="aperture design study: spikes vs bokeh for curved iris blades",
@@ -598,29 +788,37 @@ def register(subparsers, name: str) -> None:
                    help="output folder, created by difstar (written whole or not at all)")
     p.add_argument("--blades", type=_arg_type("blades", integer=True, ge=3, le=MAX_BLADES),
                    default=9, help=f"blade count, 3 to {MAX_BLADES}")
-    p.add_argument("--f-number", type=positive_float, default=8.0,
-                   help="f-number of the open area, > 0")
+    p.add_argument("--f-number", type=_arg_type("f_number", ge=MIN_F_NUMBER,
+                                                le=MAX_F_NUMBER),
+                   default=8.0, help=f"f-number of the open area, {MIN_F_NUMBER:g} to "
+                   f"{MAX_F_NUMBER:g}")
     p.add_argument("--quick", action="store_true", help="small grids and 12 steps (CI)")
-    p.add_argument("--steps", type=positive_int,
-                   help="optimiser steps per design, >= 1 (default: 60, or 12 with --quick)")
-    p.add_argument("--max-curvature", type=_arg_type("curvature", gt=0, le=1), default=0.6,
+    p.add_argument("--steps", type=_arg_type("steps", integer=True, ge=1, le=MAX_STEPS),
+                   help="optimiser steps per design (default: 60, or 12 with --quick), "
+                   f"1 to {MAX_STEPS}")
+    p.add_argument("--max-curvature", type=_arg_type("curvature", gt=0, le=1),
                    help="blade curvature bound, relative to the circumradius, in (0, 1] "
-                   "(1 = circle)")
-    p.add_argument("--vertex-bound", type=_arg_type("bound", ge=0, lt=0.5), default=0.015,
+                   f"(1 = circle) (default: {STUDY_DEFAULT_ARGS['max_curvature']:g})")
+    p.add_argument("--vertex-bound", type=_arg_type("bound", ge=0, lt=0.5),
                    help="bound on each vertex's relative radial and angular (rad) deviation, "
-                   "in [0, 0.5)")
-    p.add_argument("--bokeh-weight", type=nonnegative_float, default=0.0,
-                   help="weight of the bokeh CV in the objective, >= 0 (0: spikes only)")
+                   "in [0, 0.5); with --max-curvature and --blades it must keep every iris "
+                   f"convex (default: {STUDY_DEFAULT_ARGS['vertex_bound']:g})")
+    p.add_argument("--bokeh-weight", type=_arg_type("weight", ge=0, le=MAX_BOKEH_WEIGHT),
+                   help=f"weight of the bokeh CV in the objective, 0 to {MAX_BOKEH_WEIGHT:g} "
+                   f"(0: spikes only) (default: {STUDY_DEFAULT_ARGS['bokeh_weight']:g})")
     p.add_argument("--overwrite", action="store_true",
                    help="replace --out if it is a folder difstar made (never one holding "
                    "other files)")
     p.add_argument("--sweep", metavar="FILE",
                    help="instead of the study, measure every design of FILE (JSON, "
                    "data_schemas/design_sweep.schema.json) at once; writes sweep.json and "
-                   "sweep.md (--blades, --f-number and --quick apply; nothing is optimised)")
+                   "sweep.md (--blades, --f-number and --quick apply; nothing is optimised, "
+                   "so --steps, --max-curvature, --vertex-bound and --bokeh-weight are "
+                   "refused)")
     p.add_argument("--sweep-curvature", nargs=3, metavar=("LO", "HI", "N"),
                    help="a sweep of N designs, curvature evenly from LO to HI (in [0, 1]), "
-                   "straight-cut vertices; with --sweep, added after its designs")
+                   f"straight-cut vertices, N at most {MAX_SWEEP_DESIGNS}; with --sweep, "
+                   "added after its designs")
     p.add_argument("--devices", metavar="N",
                    help="with a sweep: shard the designs over N devices (default: "
                    "$DIFSTAR_DEVICES, else every device); see docs/sharding.md")
