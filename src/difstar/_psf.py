@@ -3,9 +3,11 @@ of :mod:`._psf_engine`) and :func:`plan_psf` (its plan, made outside jit)."""
 
 from __future__ import annotations
 
+import collections
 import math
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -329,6 +331,15 @@ def psf(
     h, w = _check_shape(shape)
     n_lam = _check_counts(pupil, wavelength)
     if plan is None:
+        # a plain call with concrete values: the plan and the compiled program are made
+        # once and reused by every later call that needs the same (see _plain_call)
+        key = _plain_key(pupil, wavelength, weights, z_image, defocus, pixel_pitch,
+                         wavefront, (h, w), sampling, accuracy, scaling, method)
+        if key is not None:
+            return _plain_call(key, pupil, wavelength=wavelength, weights=weights,
+                               z_image=z_image, defocus=defocus, pixel_pitch=pixel_pitch,
+                               shape=(h, w), sampling=sampling, accuracy=accuracy,
+                               wavefront=wavefront, scaling=scaling, method=method)
         plan = plan_psf(pupil, wavelength=wavelength, z_image=z_image, defocus=defocus,
                         pixel_pitch=pixel_pitch, shape=(h, w), sampling=sampling,
                         accuracy=accuracy, wavefront=wavefront, scaling=scaling,
@@ -346,17 +357,18 @@ def psf(
                 f"at most {MAX_EXACT_EDGES}; make the plan with difstar.plan_psf for this "
                 "pupil (it samples the pupil instead).")
         check_memory_of(plan, (h, w), n_lam, edges, float(pixel_pitch))
+    lam, wts = _wavelengths_and_weights(wavelength, weights)
+    return _evaluate_all(pupil, lam, wts, z_image, defocus, wavefront, plan=plan,
+                         shape=(h, w), pixel_pitch=float(pixel_pitch), scaling=scaling)
+
+
+def _wavelengths_and_weights(wavelength, weights):
+    """(λ as an array, normalised weights or None for one wavelength), checked."""
     lam = jnp.asarray(wavelength, dtype=float)
-
-    def one(lam1):
-        return evaluate(pupil, lam1, z_image=z_image, defocus=defocus,
-                        pixel_pitch=float(pixel_pitch), shape=(h, w), scaling=scaling,
-                        wavefront=wavefront, plan=plan)
-
     if lam.ndim == 0:
         if weights is not None:
             raise ValueError("difstar.psf: weights need an array of wavelengths.")
-        return one(lam)
+        return lam, None
     if lam.ndim != 1 or lam.size < 1:
         raise ValueError(f"difstar.psf: wavelength must be a number or a 1-D array; got "
                          f"shape {lam.shape}.")
@@ -368,6 +380,85 @@ def psf(
     if wv is not None and (not np.all(np.isfinite(wv[0])) or np.any(wv[0] < 0)
                            or not np.sum(wv[0]) > 0):
         raise ValueError("difstar.psf: weights must be finite, >= 0 and not all 0.")
-    wts = wts / jnp.sum(wts)
+    return lam, wts / jnp.sum(wts)
+
+
+def _evaluate_all(pupil, lam, wts, z_image, defocus, wavefront, *, plan, shape,
+                  pixel_pitch: float, scaling):
+    """The window for λ (a number, or an array weighted by ``wts``) by ``plan``."""
+
+    def one(lam1):
+        return evaluate(pupil, lam1, z_image=z_image, defocus=defocus,
+                        pixel_pitch=pixel_pitch, shape=shape, scaling=scaling,
+                        wavefront=wavefront, plan=plan)
+
+    if wts is None:
+        return one(lam)
     # one wavelength at a time (lax.map): the memory of one, whatever their number
     return jnp.einsum("l,lhw->hw", wts, jax.lax.map(one, lam))
+
+
+# --- plain calls: the plan and the compiled program made once --------------------------
+
+#: the plans of the latest plain calls, by their concrete inputs (least recently used
+#: dropped first); the compiled programs are equinox's, by the plan and the inputs' shapes
+_PLANS: collections.OrderedDict = collections.OrderedDict()
+_PLANS_KEPT = 64
+
+
+def _leaf_key(x):
+    """A hashable stand-in for one concrete leaf, or None (a tracer, or unknown)."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    if isinstance(x, (bool, int, float, complex, str, type(None), np.generic)):
+        return (type(x).__name__, x)
+    if isinstance(x, (np.ndarray, jax.Array)):
+        a = np.asarray(x)
+        return (a.dtype.str, a.shape, a.tobytes())
+    return None
+
+
+def _plain_key(pupil, wavelength, weights, z_image, defocus, pixel_pitch, wavefront,
+               *static):
+    """The key of a plain call's plan: every input's concrete value and the pytrees'
+    structure; None when anything is traced (inside jit, grad or vmap: the caller passes
+    a plan there) or cannot be keyed."""
+    try:
+        leaves, treedef = jax.tree_util.tree_flatten(
+            (pupil, wavelength, weights, z_image, defocus, pixel_pitch, wavefront))
+        keys = tuple(_leaf_key(x) for x in leaves)
+        if any(k is None for k in keys):
+            return None
+        key = (treedef, keys, static, jax.config.jax_enable_x64)
+        hash(key)
+    except (TypeError, ValueError):
+        return None
+    return key
+
+
+@eqx.filter_jit
+def _compiled(pupil, lam, wts, z_image, defocus, wavefront, *, plan, shape, pixel_pitch,
+              scaling):
+    return _evaluate_all(pupil, lam, wts, z_image, defocus, wavefront, plan=plan,
+                         shape=shape, pixel_pitch=pixel_pitch, scaling=scaling)
+
+
+def _plain_call(key, pupil, *, wavelength, weights, z_image, defocus, pixel_pitch, shape,
+                sampling, accuracy, wavefront, scaling, method):
+    """:func:`psf` with concrete inputs: the plan from the cache (or made and kept), then
+    one compiled program for the whole window (compiled once per plan and shapes)."""
+    plan = _PLANS.get(key)
+    if plan is None:
+        plan = plan_psf(pupil, wavelength=wavelength, z_image=z_image, defocus=defocus,
+                        pixel_pitch=pixel_pitch, shape=shape, sampling=sampling,
+                        accuracy=accuracy, wavefront=wavefront, scaling=scaling,
+                        method=method)
+        _PLANS[key] = plan
+        while len(_PLANS) > _PLANS_KEPT:
+            _PLANS.popitem(last=False)
+    else:
+        _PLANS.move_to_end(key)
+    lam, wts = _wavelengths_and_weights(wavelength, weights)
+    return _compiled(pupil, lam, wts, jnp.asarray(z_image, float),
+                     jnp.asarray(defocus, float), wavefront, plan=plan, shape=tuple(shape),
+                     pixel_pitch=float(pixel_pitch), scaling=scaling)
