@@ -270,3 +270,29 @@ def test_gradients_wrt_zernike_coefficients_and_spectral_weights_match_fd():
         assert float(gw[i]) == pytest.approx(float(fd), rel=1e-6, abs=1e-9)
     jf = jax.jacfwd(f)(c0, w0)  # forward mode through the sampled-pupil path
     np.testing.assert_allclose(jf, gc, rtol=1e-8)
+
+
+@pytest.mark.parametrize("dz", [0.0, 0.3e-3])
+def test_plain_call_plans_and_traces_once(monkeypatch, dz):
+    """A plain call (concrete inputs, no plan) makes its plan once and compiles once:
+    a repeated call reuses both, another rotation reuses the compiled program, and the
+    values equal those of the call with an explicit plan (and the exact transform in
+    focus, test_polygon_in_focus_matches_exact_transform)."""
+    import difstar._psf as mod
+
+    plans, traces = [], []
+    real_plan, real_eval = mod.plan_psf, mod._evaluate_all
+    monkeypatch.setattr(mod, "plan_psf", lambda *a, **k: plans.append(1) or real_plan(*a, **k))
+    monkeypatch.setattr(mod, "_evaluate_all",
+                        lambda *a, **k: traces.append(1) or real_eval(*a, **k))
+    kw = dict(wavelength=530e-9, z_image=F, defocus=dz, pixel_pitch=P, shape=(38, 34))
+    first = difstar.psf(difstar.RegularPolygon(7, R22, 0.1), **kw)
+    again = difstar.psf(difstar.RegularPolygon(7, R22, 0.1), **kw)
+    assert len(plans) == 1 and len(traces) == 1
+    turned = difstar.psf(difstar.RegularPolygon(7, R22, 0.3), **kw)
+    assert len(traces) == 1
+    ref = difstar.psf(difstar.RegularPolygon(7, R22, 0.3),
+                      plan=real_plan(difstar.RegularPolygon(7, R22, 0.3), **kw), **kw)
+    np.testing.assert_array_equal(np.asarray(first), np.asarray(again))
+    np.testing.assert_allclose(np.asarray(turned), np.asarray(ref), rtol=1e-10,
+                               atol=1e-12 * float(np.max(ref)))
