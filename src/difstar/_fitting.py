@@ -1612,11 +1612,10 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         _, values, datas, (status, ok, steps), spike_errors = best
         return values, datas
 
-    for si, st in enumerate(stages):  # a stage's mistakes are found before any fitting
-        _check_stage_keys(si, st)
-    # a repeat's mistakes are found before any fitting: (stages, until, max_rounds)
-    repeats = {si: _check_repeat(model, si, st["repeat"], len(solving_before(si)))
-               for si, st in enumerate(stages) if st.get("repeat") is not None}
+    # every stage's mistakes (keys, names, windows, limits, scans, hops, repeats) and the
+    # starts' are found before any fitting; a repeat's (stages, until, max_rounds) kept
+    repeats = _check_fit_inputs(model, datas, stages, starts=starts, max_steps=max_steps,
+                                rtol=rtol)
     for si, st in enumerate(stages):
         if st.get("hop") is not None:
             values, datas = hop(si, st, values, datas)
@@ -1723,6 +1722,315 @@ def _check_repeat(model: ImageModel, si: int, r: Any, n_solving: int) -> tuple:
     return k, dict(until), max_rounds
 
 
+#: the most grid points a stage's ``scan`` may try (each one a model image: a scan step
+#: of 1e-7 ran for minutes)
+MAX_SCAN_POINTS = 1000
+#: the most combinations of ``starts`` (each one a fit of the first stage)
+MAX_STARTS = 1000
+
+
+class _InputAt(FitInputError):
+    """A refusal of a fit's input at a place: ``path`` as in a manifest (("stages", 1,
+    "half"), ("starts", "x0")), ``detail`` what is wrong and the fix. The message says
+    ``fit: stage 1: half: ...`` (or ``message``, where an older check's text is kept);
+    :attr:`field` is the manifest's JSON path."""
+
+    def __init__(self, path: tuple, detail: str, message: str | None = None):
+        self.path, self.detail = tuple(path), detail
+        if message is None:
+            rest = "/".join(str(q) for q in self.path[2:])
+            where = (f"stage {self.path[1]}" + (f": {rest}" if rest else "")
+                     if self.path[:1] == ("stages",) and len(self.path) > 1
+                     else "/".join(str(q) for q in self.path))
+            message = f"fit: {where}: {detail}"
+        super().__init__(message)
+
+    @property
+    def field(self) -> str:
+        return "/".join(str(q) for q in self.path)
+
+
+def _whole(x) -> bool:
+    """A whole number (an int, or a float such as JSON's 2.0), not a bool."""
+    if isinstance(x, (bool, np.bool_)):
+        return False
+    if isinstance(x, (int, np.integer)):
+        return True
+    return isinstance(x, (float, np.floating)) and math.isfinite(x) and float(x).is_integer()
+
+
+def _finite(x) -> bool:
+    """A finite real number, not a bool."""
+    return (isinstance(x, (int, float, np.integer, np.floating))
+            and not isinstance(x, (bool, np.bool_)) and math.isfinite(x))
+
+
+def _scan_problem(model: ImageModel, name, half_range, step) -> str | None:
+    """Why a scan of ``name`` over ± ``half_range`` by ``step`` cannot run, or None."""
+    if not isinstance(name, str) or name not in model.params:
+        return (f"name {name!r} is not a parameter of the model; known: "
+                f"{sorted(model.params)}")
+    for q, x in (("half_range", half_range), ("step", step)):
+        if not (_finite(x) and x > 0):
+            return f"{q} must be a finite number > 0 (in {name}'s units); got {x!r}"
+    if step > 2 * half_range:
+        return (f"step {step:g} is wider than the range (2 × half_range = "
+                f"{2 * half_range:g}): give step <= 2 half_range")
+    ratio = 2 * half_range / step
+    if not ratio < MAX_SCAN_POINTS:  # (a ratio of inf: the same)
+        return (f"half_range {half_range:g} / step {step:g} makes {ratio:.3g} grid points, "
+                f"each a model image; at most {MAX_SCAN_POINTS}: raise step or lower "
+                "half_range")
+    return None
+
+
+def _check_hop(model: ImageModel, si: int, h: Any, n_solving: int) -> None:
+    """A ``hop`` stage that cannot be right, refused before any fitting (the check the
+    hop makes when it runs, made up front; its message)."""
+    given, h = h, (h if isinstance(h, Mapping) else {})
+    k = h.get("stages", 2)
+    flips = h.get("flip", ())
+    name = h.get("name")
+    put = h.get("set", {})
+    bad = sorted(str(q) for q in set(h) - {"name", "offsets", "flip", "stages", "set"})
+    groups = []
+    if not isinstance(flips, (list, tuple)):
+        bad.append(f"flip={flips!r}")
+        flips = ()
+    for g in flips:
+        g = (g,) if isinstance(g, str) else g
+        if not isinstance(g, (list, tuple)) or not g:
+            bad.append(f"{g!r} (an empty group)" if isinstance(g, (list, tuple)) else repr(g))
+            continue
+        groups.append(g)
+    named = [q for g in groups for q in g] + (list(put) if isinstance(put, Mapping) else [])
+    named += [name] if name is not None else []
+    bad += [repr(q) for q in named if not isinstance(q, str) or q not in model.params]
+    offsets = h.get("offsets")
+    if name is not None and not (isinstance(offsets, (list, tuple)) and offsets
+                                 and all(_finite(o) for o in offsets)):
+        bad.append(f"offsets={offsets!r}")
+    kinds = (name is not None) + bool(flips) + bool(put)
+    if not isinstance(given, Mapping) or bad or kinds != 1 or not (
+            _whole(k) and 1 <= k <= n_solving):
+        raise _InputAt(("stages", si, "hop"), "needs one of: a parameter of the model with "
+                       "offsets ({'name': ..., 'offsets': [...]}), a list of parameters to "
+                       "negate, each a name or a list of names negated together ({'flip': "
+                       "['z6', ['z4', 'z11']]}), or values to put ({'set': {name: value}}); "
+                       f"and 1 <= stages <= {n_solving} earlier solving stages; got {given!r}"
+                       + (f" (bad: {', '.join(bad)})" if bad else "") + ".")
+    if put:
+        try:
+            _put(model, put, "set")
+        except FitInputError as e:
+            raise _InputAt(("stages", si, "hop", "set"), str(e).removeprefix("set: ")) from None
+
+
+def _check_options(si: int, key: str, opts: Mapping) -> None:
+    """A stage's ``spikes``, ``noise_from_residuals`` or ``reject`` options, checked
+    before any fitting (each function checks them again when it runs)."""
+
+    def need(ok, q, what):
+        if not ok:
+            raise _InputAt(("stages", si, key, q), f"must be {what}; got {opts[q]!r}.")
+
+    def number(q, lo=None, lo_open=False, hi=None, hi_open=False, what=""):
+        if q not in opts or (q == "relative" and opts[q] is None):
+            return
+        x = opts[q]
+        ok = _finite(x) and (lo is None or (x > lo if lo_open else x >= lo)) and (
+            hi is None or (x < hi if hi_open else x <= hi))
+        lims = [f"{'>' if lo_open else '>='} {lo:g}" if lo is not None else "",
+                f"{'<' if hi_open else '<='} {hi:g}" if hi is not None else ""]
+        need(ok, q, "a finite number " + " and ".join(v for v in lims if v) + what)
+
+    def whole(q, lo, hi=None):
+        if q in opts:
+            need(_whole(opts[q]) and opts[q] >= lo and (hi is None or opts[q] <= hi), q,
+                 f"a whole number >= {lo}" + (f" and <= {hi}" if hi is not None else ""))
+
+    def choice(q, allowed):
+        if q in opts:
+            need(isinstance(opts[q], str) and opts[q] in allowed, q, f"one of {allowed}")
+
+    if key == "spikes":
+        number("r_min", 0, what=" (pixels)")
+        number("r_max", 0, True, what=" (pixels)")
+        whole("n_spikes", 1, 64)
+        number("half_width", 0, True, 90, what=" (degrees)")
+        number("bin_width", 0, True, 90, what=" (degrees)")
+        choice("directions", ("data", "model"))
+        if "profiles" in opts:
+            need(isinstance(opts["profiles"], bool), "profiles", "true or false")
+        r_min, r_max = opts.get("r_min", 12.0), opts.get("r_max", 45.0)
+        if not r_min < r_max:
+            raise _InputAt(("stages", si, key, "r_max"), f"r_max {r_max:g} must exceed "
+                           f"r_min {r_min:g} (the spikes' radii, pixels).")
+    elif key == "noise_from_residuals":
+        number("floor", 0)
+        number("faint", 0, True, 1)
+        whole("bins", 2, 1000)
+        choice("intensity", ("model", "data"))
+        number("relative", 0, True, 1, True, " (a fraction of the peak)")
+    elif key == "reject":
+        number("above", 0, True, what=" (in σ)")
+        number("r_min", 0, what=" (pixels)")
+        whole("grow", 0)
+        number("relative", 0, True, 1, True, " (a fraction of the peak)")
+
+
+def _check_solving_stage(model: ImageModel, datas: Sequence[FitData], si: int, st: Mapping,
+                         n_cap: int) -> None:
+    """A solving stage that cannot be right, refused before any fitting: unknown names,
+    nothing free, a window that holds no used pixel (a negative half-width, an annulus
+    inside out), solver limits out of range, a scan of too many points, options out of
+    range, values to ``set`` that are not the model's or not numbers."""
+    def fail(key, detail):
+        raise _InputAt(("stages", si, key), detail)
+
+    def names_of(key, given):
+        if not (isinstance(given, (list, tuple)) and all(isinstance(q, str) for q in given)):
+            fail(key, f"must be a list of parameter names; got {given!r}.")
+        unknown = [q for q in given if q not in model.params]
+        if unknown:
+            fail(key, f"{unknown} are not parameters of the model; known: "
+                      f"{sorted(model.params)}.")
+        return model.expand(given, n_cap)
+
+    free = st.get("free", "all")
+    if free == "all":
+        names = list(model.free)
+    else:
+        if isinstance(free, (list, tuple)) and not free:
+            fail("free", "is empty: name the parameters this stage fits (or 'all').")
+        names = names_of("free", free)
+    fix = set(names_of("fix", st["fix"])) if st.get("fix") is not None else set()
+    names = [k for k in names if k not in fix]
+    bad = sorted(set(names) - set(model.free))
+    if bad:
+        fail("free", f"{bad} are not free parameters of the model (give them free: true, "
+                     "or leave them out of the stage).")
+    if not names:
+        fail("free", f"nothing is free in this stage (free {free!r} minus fix "
+                     f"{sorted(fix)}): free at least one of the model's free parameters "
+                     f"{model.free}.")
+    if "max_steps" in st and not (_whole(st["max_steps"]) and st["max_steps"] >= 1):
+        fail("max_steps", f"must be a whole number >= 1; got {st['max_steps']!r}.")
+    if "rtol" in st and not (_finite(st["rtol"]) and st["rtol"] > 0):
+        fail("rtol", f"must be a finite number > 0; got {st['rtol']!r}.")
+    half, ann = st.get("half"), st.get("annulus")
+    if half is not None and not (_whole(half) and half >= 0):
+        fail("half", f"must be a whole number of pixels >= 0 (the central (2 half + 1)² "
+                     f"pixels) or null (the whole image); got {half!r}.")
+    if ann is not None:
+        if not (isinstance(ann, (list, tuple)) and len(ann) == 2 and all(map(_finite, ann))
+                and 0 <= ann[0] < ann[1]):
+            fail("annulus", f"must be [r_min, r_max] in pixels with 0 <= r_min < r_max; "
+                            f"got {ann!r}.")
+    total = 0
+    for i, d in enumerate(datas):
+        w = d if half is None else d.cropped(int(half))
+        n_win = int(np.count_nonzero(w.mask))
+        n = n_win if ann is None else int(np.count_nonzero(
+            w.annulus(float(ann[0]), float(ann[1])).mask))
+        if n == 0:
+            fail("annulus" if ann is not None and n_win else "half",
+                 f"the window (half {half}, annulus {ann}) holds no used pixel of capture "
+                 f"{i} ({d.image.shape[0]} × {d.image.shape[1]} pixels, "
+                 f"{int(np.count_nonzero(d.mask))} used): widen it.")
+        total += n
+    if total < len(names):
+        fail("half" if ann is None else "annulus",
+             f"the window (half {half}, annulus {ann}) holds {total} used pixels for "
+             f"{len(names)} free parameters: widen it or free fewer.")
+    if st.get("set") is not None:
+        put = st["set"]
+        if isinstance(put, Mapping):
+            put = {q2: x for q, x in put.items()
+                   for q2 in (model.expand([q], n_cap) if isinstance(q, str) else [q])}
+        try:
+            _put(model, put, "set")
+        except FitInputError as e:
+            fail("set", str(e).removeprefix("set: "))
+    if st.get("scan") is not None:
+        sc = st["scan"]
+        why = _scan_problem(model, sc.get("name"), sc.get("half_range"), sc.get("step"))
+        if why:
+            fail("scan", why + ".")
+    for key in ("spikes", "noise_from_residuals", "reject"):
+        if st.get(key) is not None:
+            _check_options(si, key, st[key])
+
+
+def _check_fit_inputs(model: ImageModel, datas: Sequence[FitData], stages: Sequence,
+                      *, starts=None, max_steps=100, rtol=1e-6) -> dict:
+    """Every mistake in a fit's stages and starts that can be found before any fitting
+    (:func:`fit` and :func:`load_manifest` call it; ``model`` already made for the
+    captures): returns the repeat stages' (stages, until, max_rounds) by index. Raises
+    :class:`FitInputError` (an :class:`_InputAt` naming the stage and key)."""
+    n_cap = len(datas)
+    if not model.free:
+        raise _InputAt(("params",), "no parameter is free; set free: true on at least one.",
+                       "fit: no free parameter (set free=true on at least one).")
+    if not (_whole(max_steps) and max_steps >= 1):
+        raise _InputAt(("max_steps",), f"must be a whole number >= 1; got {max_steps!r}.")
+    if not (_finite(rtol) and rtol > 0):
+        raise _InputAt(("rtol",), f"must be a finite number > 0; got {rtol!r}.")
+    if not isinstance(stages, (list, tuple)):
+        raise _InputAt(("stages",), f"must be a list of stages; got {stages!r}.")
+    if not stages:
+        raise _InputAt(("stages",), "is empty: give one stage or more (e.g. [{'free': "
+                       "'all'}]), or leave stages out.")
+    repeats = {}
+    n_solving = 0
+    for si, st in enumerate(stages):
+        try:
+            _check_stage_keys(si, st)
+            if st.get("repeat") is not None:
+                repeats[si] = _check_repeat(model, si, st["repeat"], n_solving)
+        except _InputAt:
+            raise
+        except FitInputError as e:
+            key = next((q for q in ("repeat", "hop") if isinstance(st, Mapping) and q in st),
+                       None)
+            detail = str(e).removeprefix(f"fit: stage {si}: ").removeprefix(f"fit: stage {si} ")
+            raise _InputAt(("stages", si) + ((key,) if key else ()), detail, str(e)) from None
+        if st.get("hop") is not None:
+            _check_hop(model, si, st["hop"], n_solving)
+        elif st.get("repeat") is None:
+            _check_solving_stage(model, datas, si, st, n_cap)
+            n_solving += 1
+    if starts:
+        if not isinstance(starts, Mapping):
+            raise _InputAt(("starts",), f"must map parameter names to lists of start "
+                           f"values; got {starts!r}.")
+        combos = 1
+        for k, vs in starts.items():
+            if k not in model.params:
+                raise _InputAt(("starts", k), f"not a parameter of the model; known: "
+                               f"{sorted(model.params)}.")
+            if not (isinstance(vs, (list, tuple)) and vs and all(_finite(x) for x in vs)):
+                raise _InputAt(("starts", k), f"must be a non-empty list of finite numbers; "
+                               f"got {vs!r}.")
+            combos *= len(vs)
+        if combos > MAX_STARTS:
+            raise _InputAt(("starts",), f"{combos} combinations of start values, each a fit "
+                           f"of the first stage; at most {MAX_STARTS}: give fewer.")
+    if not isinstance(model.source, str):  # a source image: inside every padded window
+        sh, sw = model.source.shape
+        for si, st in enumerate(stages):
+            half = st.get("half") if st.get("hop") is None and st.get("repeat") is None \
+                else None
+            for d in datas:
+                h, w = d.image.shape if half is None else d.cropped(int(half)).image.shape
+                hp, wp = h + 2 * model.pad, w + 2 * model.pad
+                if sh > hp or sw > wp:
+                    raise _InputAt(("source", "image"), f"the source image ({sh} × {sw}) is "
+                                   f"larger than stage {si}'s padded window ({hp} × {wp}); "
+                                   "crop it or raise detector pad.")
+    return repeats
+
+
 def _put(model: ImageModel, put: Mapping[str, Any], where: str) -> dict[str, float]:
     """``put`` (name → value) checked against ``model`` (known names, finite numbers)
     and kept inside each parameter's bounds."""
@@ -1751,12 +2059,17 @@ def _scan(model: ImageModel, data, target, values, *, name: str, half_range,
     The grid is the whole multiples of ``step`` in that range, not the value plus
     multiples: starts that differ by less than a step search the same points, so the
     basin chosen does not depend on where inside a step the start happened to be."""
+    why = _scan_problem(model, name, half_range, step)
+    if why:
+        raise FitInputError(f"scan: {why}.")
     p = model.params[name]
     v = float(values[name])
     grid = step * np.arange(math.ceil((v - half_range) / step - 1e-9),
                             math.floor((v + half_range) / step + 1e-9) + 1)
     if p.bounds is not None:
         grid = grid[(grid > p.bounds[0]) & (grid < p.bounds[1])]
+    if grid.size == 0:  # no grid point inside the bounds: nothing better to move to
+        return dict(values)
     cost = chi2_slice(model, data, values, name, grid, target=target)
     return {**values, name: float(grid[int(np.argmin(cost))])}
 
@@ -1956,48 +2269,156 @@ def _nowarn():
 # --- manifests ----------------------------------------------------------------------------
 
 
-def _resolve(path: str, manifest_dir) -> str:
+def _resolve(path: str, manifest_dir, *, field: str | None = None,
+             source: str = "manifest") -> str:
     """A data path from a manifest: absolute, or relative to the manifest's folder, the
-    current folder or the repository root (the folder above ``fit/``), whichever exists."""
+    current folder or the repository root (the folder above ``fit/``), whichever exists.
+    ``field``: the manifest's field that gave it (named in the error)."""
+    import os
     from pathlib import Path
 
     p = Path(path)
     if p.is_absolute():
-        return str(p)
-    md = Path(manifest_dir).resolve()
-    cands = [md / p, Path.cwd() / p] + [a / p for a in md.parents if (a / "fit").is_dir()]
+        cands = [p]
+    else:
+        md = Path(manifest_dir).resolve()
+        cands = [md / p, Path.cwd() / p] + [a / p for a in md.parents if (a / "fit").is_dir()]
     for c in cands:
-        if c.exists():
-            return str(c)
-    raise FitInputError(f"manifest: data file {path!r} not found (looked in "
-                        f"{', '.join(str(c.parent) for c in cands[:3])}).")
+        try:
+            found = c.exists()
+        except (OSError, ValueError):  # a name the system cannot hold
+            found = False
+        if found:
+            return os.path.abspath(c)  # ".." folded: the path the output policy compares
+    where = f"{source}: field {field}" if field else source
+    raise FitInputError(f"{where}: data file {path!r} not found (looked in "
+                        f"{', '.join(str(c.parent) for c in cands[:3])}); give a path "
+                        "relative to the manifest's folder, or an absolute one.")
 
 
-def _load_capture(d: Mapping, where, manifest_dir) -> FitData:
-    """One capture of a manifest's ``data``: its file, window, noise, exposure and
-    saturation level."""
+def _read_at(file: str, field: str, source: str):
+    """:func:`difstar.io.read_image` of ``file``, its errors naming the manifest's field."""
+    from .io import read_image
+
+    try:
+        return read_image(file)
+    except (ValueError, OSError) as e:
+        raise FitInputError(f"{source}: field {field}: {e}") from None
+
+
+def _load_capture(d: Mapping, where, manifest_dir, *, source: str = "manifest",
+                  inputs: list | None = None) -> FitData:
+    """One capture of a manifest's ``data``: its file, window, σ (a number, a σ map file or
+    the noise model), exposure and saturation level, checked against the image (the ROI
+    inside it, a σ map of its shape, some signal) with errors naming ``where`` (the
+    capture's JSON path). The files read are appended to ``inputs``. Pixels that are NaN
+    or infinite (a FITS border) are left out of the fit, with a warning."""
     if not isinstance(d, Mapping) or "path" not in d:
-        raise FitInputError(f"manifest: {where} needs a 'path' (the image file).")
-    noise = d.get("noise", {})
-    return FitData.from_file(_resolve(d["path"], manifest_dir), roi=d.get("roi"),
-                             sigma=d.get("sigma"),
-                             noise=Noise(noise.get("read"), float(noise.get("gain", 1.0)),
-                                         float(noise.get("floor", 0.0))),
-                             exposure=float(d.get("exposure", 1.0)),
-                             saturation=d.get("saturation"))
+        raise FitInputError(f"{source}: field {where}: needs a 'path' (the image file).")
+    inputs = [] if inputs is None else inputs
+    file = _resolve(d["path"], manifest_dir, field=f"{where}/path", source=source)
+    inputs.append(file)
+    im = _read_at(file, f"{where}/path", source)
+    h, w = im.shape
+    roi = d.get("roi")
+    win = np.s_[:, :]
+    if roi is not None:
+        r0, r1, c0, c1 = (int(v) for v in roi)
+        if not (0 <= r0 < r1 <= h and 0 <= c0 < c1 <= w and r1 - r0 >= 4 and c1 - c0 >= 4):
+            raise FitInputError(
+                f"{source}: field {where}/roi: {list(roi)} is not a window of the image "
+                f"({h} × {w} pixels): give [row0, row1, col0, col1] with 0 <= row0 < row1 <= "
+                f"{h}, 0 <= col0 < col1 <= {w}, at least 4 × 4 pixels.")
+        win = np.s_[r0:r1, c0:c1]
+    mask = np.array(im.valid)
+    sigma = d.get("sigma")
+    if isinstance(sigma, str):  # a σ map: an image of the data's shape
+        sfile = _resolve(sigma, manifest_dir, field=f"{where}/sigma", source=source)
+        inputs.append(sfile)
+        sm = _read_at(sfile, f"{where}/sigma", source)
+        if sm.shape != im.shape:
+            raise FitInputError(
+                f"{source}: field {where}/sigma: the σ map is {sm.shape[0]} × {sm.shape[1]} "
+                f"pixels, the image {h} × {w}: give a σ map of the image's shape (before "
+                "roi).")
+        mask &= sm.valid
+        sigma = np.where(sm.valid, sm.data, 1.0)
+        bad = int(np.count_nonzero(mask[win] & (sigma[win] <= 0)))
+        if bad:
+            raise FitInputError(f"{source}: field {where}/sigma: the σ map holds {bad} values "
+                                "<= 0 on pixels of the window; σ must be > 0 (NaN where a "
+                                "pixel is not to be used).")
+    n_bad = int(np.count_nonzero(~mask[win]))
+    used = im.data[win][mask[win]]
+    if used.size == 0:
+        raise FitInputError(f"{source}: field {where}: no pixel of the window holds a finite "
+                            "value; check the file and the roi.")
+    if not np.ptp(used) > 0:
+        raise FitInputError(f"{source}: field {where}: the data has no signal above the "
+                            f"background (every used pixel is {used[0]:g}); check the file "
+                            "and the roi.")
+    noise = d.get("noise") or {}
+    try:
+        fd = FitData.from_array(
+            im.data, sigma=sigma, mask=mask, roi=roi, pixel_scale=im.pixel_scale, path=file,
+            noise=Noise(None if noise.get("read") is None else float(noise["read"]),
+                        float(noise.get("gain", 1.0)), float(noise.get("floor", 0.0))),
+            exposure=float(d.get("exposure", 1.0)), saturation=d.get("saturation"))
+    except FitInputError as e:
+        raise FitInputError(f"{source}: field {where}: "
+                            f"{str(e).removeprefix('FitData: ')}") from None
+    bg = _border_background(fd)
+    if not float(np.max(fd.image[fd.mask])) > bg:
+        raise FitInputError(f"{source}: field {where}: the data has no signal above the "
+                            f"background ({bg:g}, the border's median); check the file, the "
+                            "roi and the saturation level.")
+    if n_bad:
+        warnings.warn(f"{source}: field {where}/path: {n_bad} of {used.size + n_bad} pixels "
+                      "of the window are NaN or infinite (e.g. a border of the image); they "
+                      "are left out of the fit.", stacklevel=3)
+    return fd
 
 
-def _load_source(src, manifest_dir):
+def _load_source(src, manifest_dir, *, source: str = "manifest",
+                 inputs: list | None = None):
     """The manifest's ``source``: "point", "disc" or {"image": path} (FITS, TIFF, PNG or
-    .npy: the source as the data's pixels see it)."""
+    .npy: the source as the data's pixels see it; finite, non-negative, a positive sum).
+    The file read is appended to ``inputs``."""
     if isinstance(src, Mapping):
-        if set(src) != {"image"}:
-            raise FitInputError("manifest: source must be 'point', 'disc' or {'image': path}; "
-                                f"got {dict(src)}.")
-        from .io import read_image
-
-        return np.asarray(read_image(_resolve(src["image"], manifest_dir)).data, float)
+        if set(src) != {"image"} or not isinstance(src["image"], str):
+            raise FitInputError(f"{source}: field source: must be 'point', 'disc' or "
+                                f"{{'image': path}}; got {dict(src)}.")
+        file = _resolve(src["image"], manifest_dir, field="source/image", source=source)
+        if inputs is not None:
+            inputs.append(file)
+        im = _read_at(file, "source/image", source)
+        a = np.where(im.valid, im.data, 0.0)
+        if not (np.all(a >= 0) and a.sum() > 0):
+            raise FitInputError(f"{source}: field source/image: a source image must be "
+                                "non-negative with a positive sum (the source's light as "
+                                "the data's pixels see it).")
+        return a
     return src
+
+
+def _border_background(data: FitData) -> float:
+    """The median of the used pixels in the border of the window (a tenth of its size, at
+    least 2 pixels): the ``"auto"`` background. Where that border holds no used pixel (a
+    border of NaN in the file), the border of the box of the used pixels instead."""
+    m = data.mask
+    box = np.s_[:, :]
+    if not _edge(m.shape)[m].any():
+        rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+        box = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    img, m = data.image[box], m[box]
+    return float(np.median(img[_edge(m.shape) & m]))
+
+
+def _edge(shape) -> np.ndarray:
+    b = max(2, min(shape) // 10)
+    edge = np.ones(shape, bool)
+    edge[b:-b, b:-b] = False
+    return edge
 
 
 def _brightest_offset(data: FitData, background: float) -> tuple[float, float]:
@@ -2016,75 +2437,266 @@ def _brightest_offset(data: FitData, background: float) -> tuple[float, float]:
     return (float((sub * xx).sum() / tot - w // 2), float((sub * yy).sum() / tot - h // 2))
 
 
+def _manifest_shape(man: Any, src: str) -> None:
+    """The mistakes the schema would name less plainly, named first: not an object, an
+    empty list of captures, a capture without its file, a pupil without its builder,
+    light with neither or both of wavelength and band, unknown keys (with the known
+    ones)."""
+    if not isinstance(man, Mapping):
+        raise FitInputError(f"{src}: field (top level): a manifest is a JSON object with "
+                            f"data, pupil, light and params; got {type(man).__name__}.")
+    data = man.get("data")
+    if isinstance(data, list) and not data:
+        raise FitInputError(f"{src}: field data: an empty list; give one capture or more "
+                            "({'path': 'star.fits'}).")
+    for i, d in enumerate(data if isinstance(data, list) else [data]):
+        if isinstance(d, Mapping) and "path" not in d:
+            where = f"data/{i}: capture data[{i}]" if isinstance(data, list) else "data: it"
+            raise FitInputError(f"{src}: field {where} needs a 'path' (the image file).")
+    pu = man.get("pupil")
+    if isinstance(pu, Mapping) and "builder" not in pu:
+        raise FitInputError(f"{src}: field pupil: needs a 'builder', one of "
+                            f"{sorted(BUILDERS)}.")
+    li = man.get("light")
+    if isinstance(li, Mapping) and ("wavelength" in li) == ("band" in li):
+        raise FitInputError(f"{src}: field light: give exactly one of wavelength (metres, "
+                            "e.g. 9e-07) or band ([lo, hi] in metres); got "
+                            f"{'both' if 'band' in li else 'neither'}.")
+    if isinstance(li, Mapping) and "wavelength" in li:
+        for q in ("n", "source"):
+            if q in li:
+                raise FitInputError(f"{src}: field light/{q}: goes with band (the "
+                                    "wavelengths over it and their spectrum); with one "
+                                    "wavelength leave it out.")
+    _known_keys(man, src)
+
+
+def _known_keys(man: Mapping, src: str) -> None:
+    """A key the manifest's schema does not know, in an object with a fixed set of keys
+    (a typo would otherwise be refused by the schema without the keys it knows, or passed
+    over): refused naming its field and the known keys."""
+    from .io._scene import load_schema
+
+    schema = load_schema("image_fit_manifest")
+    props, defs = schema["properties"], schema["$defs"]
+
+    def check(obj, allowed, where, what=""):
+        if isinstance(obj, Mapping):
+            bad = sorted(str(q) for q in set(obj) - set(allowed))
+            if bad:
+                raise FitInputError(f"{src}: field {where}: unknown key{'s' * (len(bad) > 1)} "
+                                    f"{', '.join(map(repr, bad))}{what}; known: "
+                                    f"{', '.join(sorted(allowed))}.")
+
+    check(man, props, "(top level)")
+    data = man.get("data")
+    for i, d in enumerate(data if isinstance(data, list) else [data]):
+        where = f"data/{i}" if isinstance(data, list) else "data"
+        check(d, defs["capture"]["properties"], where)
+        if isinstance(d, Mapping):
+            check(d.get("noise"), defs["capture"]["properties"]["noise"]["properties"],
+                  f"{where}/noise")
+    for k in ("detector", "light", "spikes"):
+        check(man.get(k), props[k]["properties"], k)
+    pu = man.get("pupil")
+    if isinstance(pu, Mapping):
+        for branch in props["pupil"]["oneOf"]:
+            if branch["properties"]["builder"]["const"] == pu.get("builder"):
+                check(pu, branch["properties"], "pupil", f" for builder {pu['builder']!r}")
+    params = man.get("params")
+    if isinstance(params, Mapping):
+        for k, spec in params.items():
+            check(spec, defs["param_spec"]["properties"], f"params/{k}")
+    if isinstance(man.get("source"), Mapping):
+        check(man["source"], {"image"}, "source")
+    stage = props["stages"]["items"]["properties"]
+    stages = man.get("stages")
+    for si, st in enumerate(stages if isinstance(stages, list) else ()):
+        check(st, stage, f"stages/{si}", " (a stage that is only 'hop' or only 'repeat' "
+              "takes no other key)")
+        if isinstance(st, Mapping):
+            for k in ("scan", "hop", "noise_from_residuals", "reject", "spikes", "repeat"):
+                check(st.get(k), stage[k]["properties"], f"stages/{si}/{k}")
+
+
+def _range_of(p: Param) -> tuple[float, float]:
+    """The lowest and highest values a parameter takes in a fit: its value, and its
+    bounds when free."""
+    vals = [p.value, *(p.bounds if p.free and p.bounds else ())]
+    return min(vals), max(vals)
+
+
+def _check_geometry(kind: str, model: ImageModel, src: str) -> None:
+    """An obstruction that covers the whole pupil (all its light blocked: the model is
+    not finite) is refused, naming the field, before any model is computed."""
+    p = model.params
+    if kind == "circle":
+        outer, what = _range_of(p["radius"])[0], "the pupil's radius"
+    elif kind == "jwst":
+        f2f, gap = _range_of(p["flat_to_flat"])[0], _range_of(p["gap"])[0]
+        outer = 2 * (f2f + gap) + f2f / math.sqrt(3)
+        what = "the outermost segment's corner"
+    else:
+        return
+    obs = _range_of(p["obstruction"])[1]
+    if not obs < outer:
+        raise FitInputError(f"{src}: field params/obstruction: an obstruction of radius "
+                            f"{obs:g} m (its value or bound) covers the whole pupil ({what} "
+                            f"at {outer:g} m): give an obstruction (and bounds) below "
+                            f"{outer:g} m.")
+
+
+def _params_of(man: Mapping, kind: str, builder: PupilBuilder, auto: Mapping,
+               src: str) -> dict:
+    """The manifest's ``params``, each checked and turned into a :class:`Param` (the
+    ``"auto"`` and ``"header"`` values and their relative bounds filled in), with errors
+    naming the parameter's field."""
+    known = (set(COMMON) | set(builder.defaults)
+             | {f"z{j}" for j in man.get("zernike", ())}
+             | (set(SOURCE_DISC) if man.get("source") == "disc" else set())
+             | (set(RESPONSE) if man.get("detector", {}).get("response") else set()))
+    out = {}
+    for k, spec in man["params"].items():
+        at = f"{src}: field params/{k}"
+        if k not in known:
+            raise FitInputError(f"{at}: not a parameter of this model (pupil {kind!r}, its "
+                                f"zernike terms, source and detector); known: {sorted(known)}.")
+        spec = dict(spec) if isinstance(spec, Mapping) else spec
+        if isinstance(spec, dict):
+            rel = [q for q in ("bounds", "bounds_relative", "bounds_about") if q in spec]
+            if len(rel) > 1:
+                raise FitInputError(f"{at}: give one of {rel}, not several.")
+            if spec["value"] in ("header", "auto"):
+                if auto.get(k) is None:
+                    raise FitInputError(f"{at}/value: {spec['value']!r} but it cannot be found "
+                                        "from the data (give a number).")
+                spec["value"] = auto[k]
+                if "bounds_relative" in spec:
+                    lo, hi = spec.pop("bounds_relative")
+                    spec["bounds"] = sorted([auto[k] * lo, auto[k] * hi])
+                if "bounds_about" in spec:
+                    lo, hi = spec.pop("bounds_about")
+                    spec["bounds"] = [auto[k] + lo, auto[k] + hi]
+            elif rel and rel[0] != "bounds":
+                raise FitInputError(f"{at}/{rel[0]}: applies only with value 'auto' or "
+                                    "'header' (bounds about the value found from the data); "
+                                    "give bounds [lo, hi] instead.")
+        try:
+            out[k] = _as_param(spec)
+        except FitInputError as e:
+            raise FitInputError(f"{at}: {str(e).removeprefix('Param ')}") from None
+        vals = [out[k].value, *(out[k].bounds or ())]
+        if k == "pixel_scale" and not all(1e-4 < v < 100 for v in vals):
+            raise FitInputError(f"{at}: {vals} is not in arcsec per data pixel (expected "
+                                "1e-4 … 100).")
+        if re.fullmatch(r"z\d+", k) and max(map(abs, vals)) > 1e4:
+            raise FitInputError(f"{at}: {vals} is not in nm RMS (over 10 µm).")
+    return out
+
+
+def _stage_field(e: FitInputError, src: str) -> FitInputError:
+    """A fit's refusal as the manifest's field (``stages/1/half``, ``starts/x0``)."""
+    if isinstance(e, _InputAt):
+        return FitInputError(f"{src}: field {e.field}: {e.detail}")
+    return FitInputError(f"{src}: field stages: {e}")
+
+
 def load_manifest(path):
     """(model, data, options) from an image-fit manifest (JSON; see
     data_schemas/image_fit_manifest.schema.json). ``data`` is a FitData, or a list of
     them when the manifest's ``data`` is a list of captures (exposures, dithers, an
     exposure bracket); then ``options["per_capture"]`` names the parameters each capture
-    has its own of. ``options``: stages, starts, max_steps, per_capture, the raw
-    manifest."""
-    import json
+    has its own of. ``options``: stages, starts, max_steps, per_capture, builder, the raw
+    manifest, and ``inputs``: every file the manifest made difstar read (each capture's
+    image and σ map, the source image).
+
+    The manifest is read strictly (no NaN or Infinity, no key given twice), checked
+    against its schema, then against its data and model (an ROI inside the image, some
+    signal, the obstruction inside the pupil, the parameters the model has, every stage
+    with a window that holds pixels and something free): every mistake raises
+    :class:`FitInputError` or :class:`difstar.io._scene.SceneError` (both ValueError)
+    naming the manifest and the field, before anything is computed."""
     from pathlib import Path
 
+    from .io._scene import SceneError, read_json, validate
+
     path = Path(path)
-    try:
-        man = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise FitInputError(f"manifest {path}: cannot read it as JSON ({e}).") from None
-    for key in ("data", "pupil", "light", "params"):
-        if key not in man:
-            raise FitInputError(f"manifest {path}: missing {key!r}.")
+    src = str(path)
+    try:  # one kind of error for a manifest's every mistake (the command line's prefix)
+        man = read_json(path, what="manifest")
+        _manifest_shape(man, src)
+        validate(man, "image_fit_manifest", source=src)
+    except SceneError as e:
+        raise FitInputError(str(e)) from None
     several = isinstance(man["data"], list)
     caps = man["data"] if several else [man["data"]]
-    if not caps:
-        raise FitInputError(f"manifest {path}: 'data' is an empty list (give one capture "
-                            "or more).")
-    fds = [_load_capture(d, f"data[{i}]" if several else "data", path.parent)
+    inputs: list[str] = []
+    fds = [_load_capture(d, f"data/{i}" if several else "data", path.parent, source=src,
+                         inputs=inputs)
            for i, d in enumerate(caps)]
     fd = fds[0]
     pu = dict(man["pupil"])
     kind = pu.pop("builder")
-    if kind not in BUILDERS:
-        raise FitInputError(f"manifest: pupil builder must be one of {sorted(BUILDERS)}; got "
-                            f"{kind!r}.")
-    builder = BUILDERS[kind](**pu)
+    pu = {k: int(v) if k == "blades" else float(v) for k, v in pu.items()}
+    try:
+        builder = BUILDERS[kind](**pu)
+    except FitInputError as e:
+        raise FitInputError(f"{src}: field pupil: {e}") from None
     li = man["light"]
-    if "band" in li:
-        light = Light.band(*li["band"], n=int(li.get("n", 4)), source=li.get("source", "flat"))
-    else:
-        light = Light.monochromatic(li["wavelength"])
+    at = "light/band" if "band" in li else "light/wavelength"
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            if "band" in li:
+                light = Light.band(*li["band"], n=int(li.get("n", 4)),
+                                   source=li.get("source", "flat"))
+            else:
+                light = Light.monochromatic(li["wavelength"])
+    except FitInputError as e:
+        raise FitInputError(f"{src}: field {at}: {e}") from None
+    wts = np.asarray(light.weights, float)
+    if not (np.all(np.isfinite(wts)) and np.all(wts >= 0) and wts.sum() > 0):
+        raise FitInputError(f"{src}: field light/source: a blackbody of "
+                            f"{li.get('source')} K gives no light over the band "
+                            f"{li['band']} m (the weights are not finite); give a "
+                            "temperature in kelvin (e.g. 5000) or 'flat'.")
     det = man.get("detector", {})
-    params = dict(man["params"])
-    img = fd.image[fd.mask]
-    b = max(2, min(fd.image.shape) // 10)
-    edge = np.ones(fd.image.shape, bool)
-    edge[b:-b, b:-b] = False
-    bg = float(np.median(fd.image[edge & fd.mask]))
+    bg = _border_background(fd)
     x0, y0 = _brightest_offset(fd, bg)
     auto = {"pixel_scale": fd.pixel_scale, "background": bg,
-            "flux": float(np.sum(img - bg)) / fd.exposure, "x0": x0, "y0": y0}
-    for k, spec in list(params.items()):
-        if isinstance(spec, dict) and spec.get("value") in ("header", "auto"):
-            if auto.get(k) is None:
-                raise FitInputError(f"manifest: {k} = {spec['value']!r} but it cannot be "
-                                    "found from the data (give a number).")
-            params[k] = dict(spec, value=auto[k])
-            if params[k].get("bounds_relative"):
-                lo, hi = params[k].pop("bounds_relative")
-                params[k]["bounds"] = [auto[k] * lo, auto[k] * hi]
-            if params[k].get("bounds_about"):
-                lo, hi = params[k].pop("bounds_about")
-                params[k]["bounds"] = [auto[k] + lo, auto[k] + hi]
-        if isinstance(spec, dict):
-            params[k].pop("bounds_relative", None)
-            params[k].pop("bounds_about", None)
-    model = ImageModel(builder, params, light=light, zernike=man.get("zernike", ()),
-                       oversample=float(det.get("oversample", 1.0)), pad=int(det.get("pad", 8)),
-                       accuracy=float(man.get("accuracy", 1e-2)),
-                       source=_load_source(man.get("source", "point"), path.parent),
-                       response=bool(det.get("response", False)),
-                       resampling=det.get("resampling"))
+            "flux": float(np.sum(fd.image[fd.mask] - bg)) / fd.exposure, "x0": x0, "y0": y0}
+    params = _params_of(man, kind, builder, auto, src)
+    try:
+        model = ImageModel(builder, params, light=light, zernike=man.get("zernike", ()),
+                           oversample=float(det.get("oversample", 1.0)),
+                           pad=int(det.get("pad", 8)),
+                           accuracy=float(man.get("accuracy", 1e-2)),
+                           source=_load_source(man.get("source", "point"), path.parent,
+                                               source=src, inputs=inputs),
+                           response=bool(det.get("response", False)),
+                           resampling=det.get("resampling"))
+    except FitInputError as e:  # the parameter it names, where it names one
+        msg = str(e).removeprefix("ImageModel: ")
+        m = re.match(r"(\w+) = ", msg)
+        field = f"params/{m.group(1)}" if m and m.group(1) in params else "(top level)"
+        raise FitInputError(f"{src}: field {field}: {msg}") from None
+    _check_geometry(kind, model, src)
     opts = {"stages": man.get("stages"), "starts": man.get("starts"),
             "max_steps": int(man.get("max_steps", 100)), "manifest": man,
-            "builder": kind, "per_capture": man.get("per_capture")}
+            "builder": kind, "per_capture": man.get("per_capture"), "inputs": inputs}
+    # the stages, starts and per-capture names, as fit() will check them: refused here,
+    # naming the manifest's field, before anything is computed
+    checked = model
+    if several or opts["per_capture"]:
+        per = (("x0", "y0", "flux", "background") if opts["per_capture"] is None
+               else tuple(opts["per_capture"]))
+        try:
+            checked = model.for_captures(per, len(fds))
+        except FitInputError as e:
+            raise FitInputError(f"{src}: field per_capture: "
+                                f"{str(e).removeprefix('per_capture: ')}") from None
+    try:
+        _check_fit_inputs(checked, fds, list(opts["stages"] or [{"free": "all"}]),
+                          starts=opts["starts"], max_steps=opts["max_steps"])
+    except FitInputError as e:
+        raise _stage_field(e, src) from None
     return model, (fds if several else fd), opts
