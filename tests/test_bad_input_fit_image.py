@@ -274,6 +274,12 @@ def test_bad_images_are_refused(work, capsys):
     # an image with no signal: the fit ran, then matplotlib failed
     refused_fit_image(work, capsys, "field data", "no signal", image=np.zeros((32, 32)))
     refused_fit_image(work, capsys, "field data", "no signal", image=np.full((32, 32), 7.0))
+    # a star of the wrong sign (was: the whole fit, then "Invalid vmin or vmax")
+    refused_fit_image(work, capsys, "field data", "no signal", "its sign", image=-star())
+    # values whose squares overflow or underflow (was: a fit of garbage, exit 0, or
+    # matplotlib's "Invalid vmin or vmax")
+    refused_fit_image(work, capsys, "field data", "rescale", image=star() * 1e300)
+    refused_fit_image(work, capsys, "field data", "rescale", image=star() * 1e-300)
     # a σ map of the wrong shape (was a NumPy broadcast error)
     np.save(work / "sigma.npy", np.ones((10, 10)))
     refused_fit_image(work, capsys, "field data/sigma", "10 × 10", "32 × 32",

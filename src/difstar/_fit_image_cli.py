@@ -29,7 +29,7 @@ def _figure(res, path, title):
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm, SymLogNorm
 
-    from ._fitting import values_of_capture
+    from ._fitting import _rms_peak, values_of_capture
 
     def rows(x):
         return x if isinstance(x, list) else [x]
@@ -41,9 +41,10 @@ def _figure(res, path, title):
                              squeeze=False)
     for i, (ax, data, model, resid, mask) in enumerate(zip(axes, datas, models, resids,
                                                            masks)):
-        peak = float(np.max(data[mask]))
         bg = values_of_capture(res.values, i).get("background", 0.0)
-        lo = max(peak * 1e-4, 1e-12)
+        top = float(np.max(data[mask]))
+        peak = top - bg if top > bg else max(abs(top), 1.0)  # the star above its background
+        lo = peak * 1e-4
         norm = LogNorm(vmin=lo, vmax=peak)
         cap = f" (capture {i})" if n > 1 else ""
         for a, img, name in ((ax[0], data - bg, "data − background"),
@@ -56,7 +57,7 @@ def _figure(res, path, title):
         im2 = ax[2].imshow(np.where(mask, resid, np.nan) / peak, cmap=grey,
                            norm=SymLogNorm(linthresh=lin / peak, vmin=-0.1, vmax=0.1, base=10),
                            origin="upper")
-        rms = float(np.sqrt(np.mean(resid[mask] ** 2)) / peak)
+        rms = _rms_peak(resid, data, mask)  # as result.json reports it
         ax[2].set_title(f"residual / peak (RMS {100 * rms:.2f} %)"
                         + ("; grey: not fitted" if not mask.all() else ""))
         fig.colorbar(im2, ax=ax[2], shrink=0.85, label="(data − model) / peak, symlog")

@@ -1449,7 +1449,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         half = st.get("half")
         ds = [d if half is None else d.cropped(int(half)) for d in datas]
         if st.get("annulus") is not None:
-            ds = [d.annulus(*st["annulus"]) for d in ds]
+            ds = [d.annulus(*(float(r) for r in st["annulus"])) for d in ds]
         if st.get("spikes") is not None:
             mimgs = [None] * len(ds)
             if st["spikes"].get("directions") == "model":
@@ -2367,11 +2367,20 @@ def _load_capture(d: Mapping, where, manifest_dir, *, source: str = "manifest",
     except FitInputError as e:
         raise FitInputError(f"{source}: field {where}: "
                             f"{str(e).removeprefix('FitData: ')}") from None
+    big = float(np.max(np.abs(fd.image[fd.mask])))
+    if not 1.0 / MAX_DATA_MAGNITUDE <= big <= MAX_DATA_MAGNITUDE:
+        raise FitInputError(f"{source}: field {where}: values up to {big:.3g} (outside "
+                            f"{1 / MAX_DATA_MAGNITUDE:g} to {MAX_DATA_MAGNITUDE:g}, where the "
+                            "χ² overflows or underflows); rescale the data (and its σ) to "
+                            "counts or another unit near 1.")
     bg = _border_background(fd)
-    if not float(np.max(fd.image[fd.mask])) > bg:
+    amp = float(np.max(fd.image[fd.mask])) - bg
+    spread = _border_spread(fd, bg)
+    if not (amp > 5.0 * spread and amp > 1e-6 * abs(bg)):
         raise FitInputError(f"{source}: field {where}: the data has no signal above the "
-                            f"background ({bg:g}, the border's median); check the file, the "
-                            "roi and the saturation level.")
+                            f"background ({bg:g}, the border's median; the brightest pixel "
+                            f"is {amp:.3g} above it, the border's scatter {spread:.3g}); check "
+                            "the file, its sign, the roi and the saturation level.")
     if n_bad:
         warnings.warn(f"{source}: field {where}/path: {n_bad} of {used.size + n_bad} pixels "
                       "of the window are NaN or infinite (e.g. a border of the image); they "
@@ -2412,6 +2421,20 @@ def _border_background(data: FitData) -> float:
         box = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
     img, m = data.image[box], m[box]
     return float(np.median(img[_edge(m.shape) & m]))
+
+
+#: the largest |value| a fitted image may hold, and 1 / it the least largest one: its
+#: squares (χ²) stay finite and normal in float64
+MAX_DATA_MAGNITUDE = 1e100
+
+
+def _border_spread(data: FitData, background: float) -> float:
+    """The scatter of the border's used pixels about ``background`` (1.4826 × their
+    median absolute deviation: σ for Gaussian noise)."""
+    m = data.mask & _edge(data.mask.shape)
+    if not m.any():
+        return 0.0
+    return 1.4826 * float(np.median(np.abs(data.image[m] - background)))
 
 
 def _edge(shape) -> np.ndarray:

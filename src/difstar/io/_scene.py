@@ -119,7 +119,7 @@ def validate(doc: Any, schema_name: str, *, source: str = "<document>") -> None:
         raise SceneError(f"{source}: field {where}: {_message(e)}")
 
 
-def read_json(path: str | Path, *, what: str = "file") -> dict:
+def read_json(path: str | Path, *, what: str = "file") -> Any:
     """Read a JSON file strictly (no NaN/Infinity, bounded nesting), with errors naming
     the file."""
     p = Path(path)
