@@ -308,6 +308,14 @@ def test_bad_images_are_refused(work, capsys):
                       man=edited(("source",), {"image": "src.npy"}))
 
 
+def test_fit_that_cannot_fit_in_memory_is_refused_before_compiling(work, capsys,
+                                                                    monkeypatch):
+    """The Jacobian's memory (a lower estimate) against DIFSTAR_MEMORY_LIMIT, before any
+    compile (was: a 81² fit peaked at 9.4 GB with no check)."""
+    monkeypatch.setenv("DIFSTAR_MEMORY_LIMIT", "5M")
+    refused_fit_image(work, capsys, "field data", "memory", "DIFSTAR_MEMORY_LIMIT", "roi")
+
+
 def test_image_readers_refuse_huge_images_from_their_headers(tmp_path):
     """Every reader checks the size its header declares before reading any data (FITS
     and TIFF as sparse files: nothing is allocated)."""

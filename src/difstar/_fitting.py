@@ -2028,7 +2028,44 @@ def _check_fit_inputs(model: ImageModel, datas: Sequence[FitData], stages: Seque
                     raise _InputAt(("source", "image"), f"the source image ({sh} × {sw}) is "
                                    f"larger than stage {si}'s padded window ({hp} × {wp}); "
                                    "crop it or raise detector pad.")
+    _check_fit_memory(model, datas)
     return repeats
+
+
+#: the fitted Jacobian's memory over :func:`~difstar._psf.psf_bytes` per free parameter
+#: (jacfwd carries every intermediate once per parameter, and XLA keeps more): calibrated
+#: on the Spitzer campaign (fit/spitzer-irac: 81² pixels, 17 free, measured peak 9.4 GB
+#: against psf_bytes × 19 = 0.47 GB), rounded down so that the estimate stays a lower one
+_JACOBIAN_FACTOR = 8
+
+
+def _check_fit_memory(model: ImageModel, datas: Sequence[FitData]) -> None:
+    """Refuse (before any compile) a fit whose Jacobian cannot fit in memory: the
+    largest capture's padded window, its plan, the free parameters; the estimate is a
+    lower one, so a refused fit would certainly not have fitted."""
+    from ._psf import _edges, psf_bytes
+    from ._validate import fmt_bytes, memory_budget
+
+    h, w = max((d.image.shape for d in datas), key=lambda s: s[0] * s[1])
+    shape = (h + 2 * model.pad, w + 2 * model.pad)
+    try:
+        plan = model.plan(shape)
+        one = psf_bytes(plan, shape, 1, _edges(model._pupil_at(model.values())), _PITCH)
+    except (ValueError, TypeError):  # the fit's own first step reports these, named
+        return
+    k = len(model.free)
+    need = _JACOBIAN_FACTOR * (k + 2) * one * (2 if model.has_incoherent else 1)
+    budget = memory_budget()
+    if need > budget:
+        side = max(8, int(min(h, w) * math.sqrt(budget / need)))
+        raise _InputAt(
+            ("data",), f"fitting {k} free parameters on the {h} × {w} pixel window (padded to "
+            f"{shape[0]} × {shape[1]}) needs at least {fmt_bytes(need)} of memory, more than "
+            f"the {fmt_bytes(budget)} available (DIFSTAR_MEMORY_LIMIT overrides); give a "
+            f"smaller roi (about {side} × {side} may fit), fewer free parameters, or a "
+            "larger accuracy.", f"fit: the Jacobian needs at least {fmt_bytes(need)}, more "
+            f"than the {fmt_bytes(budget)} available; fit a smaller window (roi) or fewer "
+            "free parameters.")
 
 
 def _put(model: ImageModel, put: Mapping[str, Any], where: str) -> dict[str, float]:
