@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_bad_input import run, snapshot
+from test_bad_input import numeric_leaves, run, snapshot
 
 from difstar._fitting import FitInputError
 from difstar.io._scene import SceneError
@@ -458,17 +458,6 @@ def test_fit_refuses_bad_arguments_before_solving(monkeypatch):
 
 
 # ------------------------------------------------------------- property-based tests
-
-
-def numeric_leaves(doc, path=()):
-    if isinstance(doc, dict):
-        for k, v in doc.items():
-            yield from numeric_leaves(v, (*path, k))
-    elif isinstance(doc, list):
-        for i, v in enumerate(doc):
-            yield from numeric_leaves(v, (*path, i))
-    elif isinstance(doc, (int, float)) and not isinstance(doc, bool):
-        yield path
 
 
 PROP_DOC = edited(("light",), {"band": [3e-6, 4e-6], "n": 3, "source": 5000})
