@@ -539,3 +539,19 @@ KEYS = [p for p in LEAVES] + [("data", "path"), ("pupil", "builder"), ("light",)
 @given(path=st.sampled_from(KEYS), value=st.one_of(JUNK, st.just(DELETE)))
 def test_junk_or_missing_anywhere_is_a_clean_refusal(prop_folder, path, value):
     _load_or_refuse(prop_folder, edited(path, value, PROP_DOC))
+
+
+@pytest.mark.parametrize("kw,match", [
+    (dict(n=10000), "n must be a whole number from 1 to 1024"),  # was: minutes, memory growing
+    (dict(n=2.5), "n must be a whole number"),
+    (dict(n="4"), "n must be a whole number"),
+    (dict(n=3, source=-5000), "temperature in kelvin > 0"),  # was: accepted
+    (dict(n=3, source=math.nan), "temperature in kelvin > 0"),
+])
+def test_light_band_is_bounded_in_the_python_api(kw, match):
+    from difstar._fitting import FitInputError, Light
+
+    with pytest.raises(FitInputError, match=match):
+        Light.band(3e-6, 4e-6, **kw)
+    with pytest.raises(FitInputError, match="at most 1024"):
+        Light((1e-6,) * 2000, (1.0,) * 2000)

@@ -51,6 +51,7 @@ import numpy as np
 from ._psf import plan_psf, psf
 from ._pupil import Circle, Obstructed, Struts, distorted, hex_segments
 from ._sensor import response_curve
+from ._validate import MAX_WAVELENGTHS
 from ._zernike import Zernike
 
 ARCSEC = math.pi / (180 * 3600)
@@ -201,10 +202,19 @@ class Light:
         lam = np.asarray(self.wavelengths, float)
         if lam.ndim != 1 or lam.size < 1 or not np.all(np.isfinite(lam)):
             raise FitInputError(f"Light: wavelengths must be finite numbers; got {lam}.")
+        if lam.size > MAX_WAVELENGTHS:
+            raise FitInputError(f"Light: {lam.size} wavelengths, each a PSF per model image; "
+                                f"at most {MAX_WAVELENGTHS}: sample the band with fewer "
+                                "(Light.band's Gauss–Legendre nodes need few).")
         if np.any(lam > 100e-6) or np.any(lam < 10e-9):
             raise FitInputError(
                 f"Light: wavelengths {lam.tolist()} are not in metres (a wavelength above "
                 "100 µm or below 10 nm): give e.g. 0.9e-6 for 0.9 µm.")
+        w = np.asarray(self.weights, float)
+        if w.shape != lam.shape or not np.all(np.isfinite(w)) or np.any(w < 0) \
+                or not w.sum() > 0:
+            raise FitInputError(f"Light: weights must be one finite number >= 0 per "
+                                f"wavelength, not all 0; got {w.tolist()}.")
 
     @staticmethod
     def monochromatic(wavelength: Any) -> Light:
@@ -218,6 +228,18 @@ class Light:
         if not (lo < hi):
             raise FitInputError(f"Light.band: need lo < hi; got {lo}, {hi}.")
         Light((lo, hi), (0.5, 0.5))  # unit check
+        try:
+            whole = not isinstance(n, bool) and float(n) == int(n)
+        except (TypeError, ValueError, OverflowError):
+            whole = False
+        if not (whole and 1 <= int(n) <= MAX_WAVELENGTHS):
+            raise FitInputError(f"Light.band: n must be a whole number from 1 to "
+                                f"{MAX_WAVELENGTHS}; got {n!r}.")
+        if source != "flat" and not (isinstance(source, (int, float))
+                                     and not isinstance(source, bool)
+                                     and math.isfinite(source) and source > 0):
+            raise FitInputError(f"Light.band: source must be 'flat' or a blackbody "
+                                f"temperature in kelvin > 0; got {source!r}.")
         x, w = np.polynomial.legendre.leggauss(int(n))
         lam = 0.5 * (lo + hi) + 0.5 * (hi - lo) * x
         if source != "flat":
