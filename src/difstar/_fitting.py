@@ -221,7 +221,7 @@ class Light:
         return Light((float(wavelength),), (1.0,))
 
     @staticmethod
-    def band(lo: Any, hi: Any, n: int = 4, source: Any = "flat") -> Light:
+    def band(lo: Any, hi: Any, n: Any = 4, source: Any = "flat") -> Light:
         """``n`` Gauss–Legendre nodes over [lo, hi] (metres), weighted by a flat
         photon spectrum (``"flat"``) or a blackbody of temperature ``source`` kelvin
         (photon counts)."""
