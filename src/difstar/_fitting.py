@@ -229,7 +229,8 @@ class Light:
             raise FitInputError(f"Light.band: need lo < hi; got {lo}, {hi}.")
         Light((lo, hi), (0.5, 0.5))  # unit check
         try:
-            whole = not isinstance(n, bool) and float(n) == int(n)
+            whole = (isinstance(n, (int, float, np.integer, np.floating))
+                     and not isinstance(n, bool) and float(n) == int(n))
         except (TypeError, ValueError, OverflowError):
             whole = False
         if not (whole and 1 <= int(n) <= MAX_WAVELENGTHS):
