@@ -79,7 +79,10 @@ def test_manifest_validates_against_the_schema(bracket):
 @pytest.mark.slow
 def test_fit_image_cli_bracket_end_to_end(bracket, capsys):
     out = bracket.parent / "out"
-    assert main([str(bracket), "--out", str(out), "--quiet"]) == 0
+    assert main([str(bracket), "--out", str(out)]) == 0
+    shown = capsys.readouterr()
+    assert "stage 0" in shown.err and "step" in shown.err  # progress of the solver's steps
+    assert "wall time" in shown.out
     res = json.loads((out / "result.json").read_text())
     v = res["values"]
     assert abs(v["x0"] - TRUE["x0"]) < 0.02 and abs(v["y0"] - TRUE["y0"]) < 0.02

@@ -34,10 +34,12 @@ outside jit, with bounds on the pupil radius and on the wavefront's slope.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gc
 import math
 import re
+import sys
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -1199,7 +1201,9 @@ def _as_list(x):
 
 
 def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
-             atol: float, ftol: float = 1e-6):
+             atol: float, ftol: float = 1e-6, label: str | None = None):
+    """One Levenberg–Marquardt solve of ``model``'s free parameters; with ``label``, a
+    progress bar (tqdm, on stderr) of its steps and χ²."""
     from ._lm import LMStepper
 
     free = model.free
@@ -1224,13 +1228,36 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     if not bool(jnp.all(jnp.isfinite(r0))):
         raise FitInputError("fit: the model is not finite at the start; check the units "
                             "(wavelength in metres, pixel_scale in arcsec, Zernike in nm).")
-    sol = LMStepper(residuals, rtol=rtol, atol=atol).solve(
-        u0, None, max_steps=max_steps, ftol=ftol)
+    with _progress_bar(label, max_steps) as progress:
+        sol = LMStepper(residuals, rtol=rtol, atol=atol).solve(
+            u0, None, max_steps=max_steps, ftol=ftol, progress=progress)
     ok = sol.result == "converged"
     status = {"converged": "converged", "failed": "not converged: the solver failed",
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
     vals = {k: float(x) for k, x in values_of(sol.u).items()}
     return vals, status, ok, sol.steps
+
+
+@contextlib.contextmanager
+def _progress_bar(label: str | None, max_steps: int):
+    """A ``progress(k, loss, step_size, done)`` for :meth:`LMStepper.solve`: a tqdm bar
+    on stderr named ``label`` (None: no bar), closed when the solve ends."""
+    if label is None:
+        yield None
+        return
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=max_steps, desc=label, unit="step", leave=False, file=sys.stderr,
+               dynamic_ncols=True)
+
+    def progress(k, loss, size, done):
+        bar.update(1)
+        bar.set_postfix_str(f"χ² {2 * loss:.6g}", refresh=False)
+
+    try:
+        yield progress
+    finally:
+        bar.close()
 
 
 def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
@@ -1500,7 +1527,8 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
             m = model.with_values({**values, **tr}, free=names)
             ts = time.perf_counter()
             vals, status, ok, n = _one_fit(m, ds, targets, max_steps=int(
-                st.get("max_steps", max_steps)), rtol=float(st.get("rtol", rtol)), atol=atol)
+                st.get("max_steps", max_steps)), rtol=float(st.get("rtol", rtol)), atol=atol,
+                label=f"stage {si}" if verbose else None)
             chi2 = chi2_at(m, ds, vals, targets)
             entry = {"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
                      "kind": kind, "status": status, "steps": n,
