@@ -188,3 +188,41 @@ def test_fainter_copies_end_to_end(tmp_path, capsys):
     again = fit_fainter_copy(path, res, np.load(out / "model.npy"), 4.0, 5)
     assert again.values["x0"] == pytest.approx(copy["values"]["x0"], abs=1e-4)
     assert again.values["flux"] == pytest.approx(copy["values"]["flux"], rel=1e-4)
+
+
+def test_fits_outputs_subtract_from_the_input_fits(tmp_path):
+    """A FITS input with a WCS and a window (roi) inside a larger frame: model.fits lies
+    in the input's own layout (its rows bottom-up, its full frame, its header and WCS),
+    so that the input minus model.fits is residual.fits, whose RMS over the fitted
+    pixels / the peak is result.json's residual_rms_over_peak."""
+    from astropy.io import fits
+
+    star = _numpy_star(**TRUE)  # 19 × 19, rows down
+    frame = np.full((40, 36), TRUE["background"])
+    r0, c0 = 13, 7
+    frame[r0:r0 + 19, c0:c0 + 19] = star
+    hdr = fits.Header({"CTYPE1": "RA---TAN", "CTYPE2": "DEC--TAN", "CRPIX1": 18.0,
+                       "CRPIX2": 20.0, "CRVAL1": 150.0, "CRVAL2": 2.0,
+                       "CDELT1": -P / 3600, "CDELT2": P / 3600, "BUNIT": "counts"})
+    fits.PrimaryHDU(frame[::-1].copy(), header=hdr).writeto(tmp_path / "star.fits")  # FITS
+    man = _manifest("fits", {"path": "star.fits", "sigma": 0.01,
+                             "roi": [r0, r0 + 19, c0, c0 + 19]},
+                    [{"free": "all", "max_steps": 8}])
+    (tmp_path / "m.json").write_text(json.dumps(man))
+    out = tmp_path / "out"
+    assert main([str(tmp_path / "m.json"), "--out", str(out), "--quiet"]) == 0
+    res = json.loads((out / "result.json").read_text())
+    data = fits.getdata(tmp_path / "star.fits")
+    model, mh = fits.getdata(out / "model.fits", header=True)
+    resid = fits.getdata(out / "residual.fits")
+    assert model.shape == data.shape == resid.shape
+    assert mh["CRPIX1"] == 18.0 and mh["CTYPE2"] == "DEC--TAN" and mh["BUNIT"] == "counts"
+    assert mh["HIERARCH DIFSTAR ROTATION"] == pytest.approx(res["values"]["rotation"])
+    inside = np.isfinite(model)
+    assert inside.sum() == 19 * 19
+    np.testing.assert_allclose((data - model)[inside], resid[inside], rtol=0, atol=1e-12)
+    # the star where the input has it (the rows were not flipped twice, or never)
+    assert np.unravel_index(np.nanargmax(model), model.shape) == \
+        np.unravel_index(np.argmax(data), data.shape)
+    rms = np.sqrt(np.mean(resid[inside] ** 2)) / np.max(data[inside])
+    assert rms == pytest.approx(res["residual_rms_over_peak"], rel=1e-9)

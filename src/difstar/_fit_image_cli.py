@@ -4,7 +4,9 @@
 
 Writes ``result.json`` (values, standard errors, status, χ²/dof, residual RMS / peak,
 spike angles measured from the data and from the fitted model, wall time),
-``fit.png`` (data / model / residual on a log scale) and ``model.npy``.
+``fit.png`` (data / model / residual on a log scale), ``model.npy`` (rows down, the
+fitted window) and ``model.fits`` / ``residual.fits`` in the input file's own layout
+(header, WCS, row order, full frame): the input minus model.fits is residual.fits.
 """
 
 from __future__ import annotations
@@ -272,6 +274,7 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
         "residual_rms_over_peak": res.residual_rms_peak,
         "wall_time_s": wall,
         "values": res.values,
+        "units": {k: _UNITS.get(k.split("@")[0], "") for k in res.values},
         "errors": res.errors,
         "free": res.free,
         "warnings": res.warnings,
@@ -289,6 +292,7 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     }
     (out / "result.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
     np.save(out / "model.npy", np.asarray(res.model_image))  # (N, H, W) for N captures
+    _write_fits(out, res, data, opts)
     _figure(res, out / "fit.png", man.get("name", Path(manifest).parent.name))
     if verbose:
         print(res.summary())
@@ -296,6 +300,42 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
         print(f"spikes measured in the model (near the data's): {_degrees(modelled)}")
         print(f"wall time {wall:.1f} s; written to {final}")
     return summary
+
+
+#: units of the fitted values, for the FITS keywords' comments
+_UNITS = {"rotation": "deg, counter-clockwise", "x0": "data px right of centre",
+          "y0": "data px down from centre", "pixel_scale": "arcsec per data px",
+          "flux": "data units x exposure", "background": "data units",
+          "jitter": "data px, Gaussian sigma", "halo_width": "data px",
+          "halo2_width": "data px", "source_radius": "data px", "obstruction": "m",
+          "strut_width": "m", "radius": "m"}
+
+
+def _write_fits(out: Path, res, data, opts) -> None:
+    """model.fits and residual.fits (model_I / residual_I.fits for capture I of several):
+    in the input file's layout (a FITS input's header and WCS, its row order, its full
+    frame with NaN outside the fitted window), so that the input minus model.fits is
+    residual.fits; the fitted values as keywords with their units."""
+    from ._fitting import values_of_capture
+    from .io import read_image
+    from .io._images import write_fits_like
+
+    datas = data if isinstance(data, list) else [data]
+    models = res.model_image if isinstance(data, list) else [res.model_image]
+    caps = opts["manifest"]["data"]
+    caps = caps if isinstance(caps, list) else [caps]
+    for i, (d, m, cap) in enumerate(zip(datas, models, caps)):
+        v = values_of_capture(res.values, i)
+        kw = [("DIFSTAR", "fit-image", "written by difstar fit-image")]
+        kw += [(f"DIFSTAR {k.upper()}", float(x), _UNITS.get(k, "")) for k, x in v.items()]
+        src = d.path
+        im = read_image(src) if src is not None else None
+        like = dict(source=src, roi=cap.get("roi"), flipped=bool(im and im.flipped),
+                    hdu=None if im is None else im.hdu)
+        tag = "" if len(datas) == 1 else f"_{i}"
+        write_fits_like(out / f"model{tag}.fits", np.asarray(m), keywords=kw, **like)
+        resid = np.where(d.mask, d.image - np.asarray(m), np.nan)
+        write_fits_like(out / f"residual{tag}.fits", resid, keywords=kw, **like)
 
 
 def _degrees(angles) -> str:

@@ -349,3 +349,46 @@ def _read_npy(path: Path):
         return np.load(path, allow_pickle=False)
     except ValueError as e:
         raise _err(path, f"not a plain numeric .npy array ({e})") from e
+
+
+def write_fits_like(path: str | os.PathLike, image, *, source: str | os.PathLike | None,
+                    roi=None, keywords=(), flipped: bool = False, hdu: int | None = None
+                    ) -> None:
+    """Write ``image`` (as difstar holds it: rows down, cut to ``roi`` = (row0, row1, col0,
+    col1) of the source image) as a float64 FITS file laid out like the file it came from,
+    so that ``fits.getdata(source) - fits.getdata(path)`` subtracts pixel by pixel.
+
+    ``source``: the image file read (None: the array is written as it is). A FITS source
+    gives its header (WCS and all; the data-format keywords are remade) and its stored
+    row order (``flipped``: the rows were reversed on reading, as :func:`read_image`
+    does). The image goes to its place in the source's full frame; pixels outside
+    ``roi`` are NaN. ``keywords``: (name, value, comment) cards added (long names as
+    HIERARCH cards)."""
+    from astropy.io import fits
+
+    img = np.asarray(image, dtype=float)
+    header = fits.Header()
+    full = img
+    if source is not None:
+        src = Path(source)
+        kind = _kind(src)
+        if kind == "fits":
+            header = fits.getheader(src, 0 if hdu is None else hdu).copy()
+            shape = (int(header["NAXIS2"]), int(header["NAXIS1"]))
+        else:
+            shape = read_image(src).shape
+        if roi is not None:
+            r0, r1, c0, c1 = (int(v) for v in roi)
+            full = np.full(shape, np.nan)
+            full[r0:r1, c0:c1] = img
+        if flipped:
+            full = full[::-1]
+    for k in ("BSCALE", "BZERO", "BLANK", "BUNIT_DN", "CHECKSUM", "DATASUM", "EXTEND",
+              "XTENSION", "PCOUNT", "GCOUNT", "SIMPLE", "BITPIX"):
+        header.remove(k, ignore_missing=True, remove_all=True)
+    for name, value, comment in keywords:
+        key = name.upper() if len(name) <= 8 and name.replace("_", "").isalnum() \
+            else f"HIERARCH {name}"
+        room = max(0, 80 - len(key) - 28)  # a card is 80 characters: cut the comment
+        header[key] = (value, comment[:room])
+    fits.PrimaryHDU(np.ascontiguousarray(full), header=header).writeto(path)
