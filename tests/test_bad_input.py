@@ -130,6 +130,9 @@ def test_nonfinite_scene_numbers_are_refused(work, capsys, path, text, field):
 
 
 BAD_SCENE = [
+    # 100,000 sources (was: no answer after minutes; each is a coverage map of the window)
+    ("too many sources", lambda d: d["scene"].update(sources=d["scene"]["sources"] * 1025),
+     ["scene/sources", "at most 1024"]),
     # an obstruction larger than the pupil (was: an all-NaN PSF, psf_peak NaN)
     ("obstruction", lambda d: d["camera"]["lens"].update(pupil={
         "type": "obstructed", "outer": d["camera"]["lens"]["pupil"],
@@ -193,6 +196,17 @@ def test_huge_accuracy_target_is_refused_at_once(work, capsys):
     t0 = time.perf_counter()
     refused(["predict", scene, "--out", work / "out"], capsys, work, "accuracy", "memory")
     assert time.perf_counter() - t0 < 30  # it hung in fast_length
+
+
+def test_too_many_sources_are_refused_in_the_python_api():
+    import difstar
+    from difstar._validate import InputError, check_camera_scene
+
+    camera, scene = difstar.paper_camera("focused")
+    many = type(scene)(**{**{f: getattr(scene, f) for f in scene.__dataclass_fields__},
+                          "sources": scene.sources * 1025})
+    with pytest.raises(InputError, match="scene.sources: 1025 sources; at most 1024"):
+        check_camera_scene(camera, many)
 
 
 def test_huge_crop_is_refused_before_allocation(work, capsys):

@@ -61,51 +61,504 @@ Progress = Callable[[int, int, float], None]  # (items done, items in all, secon
 
 # ------------------------------------------------------------------------ devices
 
-def init_distributed() -> bool:
-    """Join a multi-process JAX job when the environment describes one; returns whether
-    it did. Call it before anything touches a device (the CLI does, first thing, when
-    ``--devices``/``DIFSTAR_DEVICES`` is used).
+ENV_DRY_RUN = "DIFSTAR_DRY_RUN"
+ENV_HEARTBEAT = "DIFSTAR_HEARTBEAT_TIMEOUT"
+ENV_JOIN_TIMEOUT = "DIFSTAR_JOIN_TIMEOUT"
+#: exit status of a process whose job lost another process (as the CLI's other
+#: "machine" errors: one ``difstar: error:`` line, status 2)
+EXIT_LOST = 2
+#: seconds between two heartbeats of a process's watchdog (a counter in the job's
+#: key-value store) and two looks at the others'
+WATCH_EVERY = 0.25
+#: seconds without a heartbeat after which a process counts as lost; after a collective
+#: failed (a peer's sockets closed), :data:`SUSPECT_AFTER`
+LOST_AFTER = 10.0
+SUSPECT_AFTER = 2.0
+#: seconds a process that saw another die gives its main thread to end by itself (the
+#: clean way: the exception unwinds, temporaries are removed) before it ends the process
+LOST_GRACE = 10.0
+#: seconds the coordinator stays up after process 0 died, for the others to see it and end
+COORDINATOR_LINGER = LOST_GRACE + 20.0
 
-    Recognised (else nothing is done and the process runs alone):
 
-    - ``JAX_COORDINATOR_ADDRESS`` (host:port of process 0), ``JAX_NUM_PROCESSES`` and
-      ``JAX_PROCESS_ID`` — any launcher; optional ``JAX_LOCAL_DEVICE_IDS``;
-    - a SLURM job step with more than one task (``SLURM_NTASKS`` > 1), or an Open MPI
-      launch (``OMPI_MCA_orte_hnp_uri``) — JAX finds the rest itself.
-    """
-    env = os.environ
-    if jax.distributed.is_initialized():
-        return True
-    if env.get("JAX_COORDINATOR_ADDRESS") and env.get("JAX_NUM_PROCESSES"):
+class ProcessLost(ConnectionError):
+    """Another process of the multi-process job died (or ended before the job was done):
+    the job cannot finish. One line, naming the process; the command line prints it as
+    ``difstar: error: …`` and exits with status 2, leaving nothing behind."""
+
+
+class DryRun(SystemExit):
+    """``DIFSTAR_DRY_RUN=1``: the plan was printed and nothing is computed (exit status 0,
+    no output: a command's temporary folder is removed as for any early end)."""
+
+    def __init__(self):
+        super().__init__(0)
+
+
+@dataclasses.dataclass(frozen=True)
+class Launch:
+    """A multi-process job as the environment describes it (:func:`launch_from_env`)."""
+
+    coordinator: str  # host:port of the coordination service (served for process 0)
+    num_processes: int
+    process_id: int
+    local_device_ids: tuple[int, ...] | None  # this process's devices (GPUs), None: all
+    launcher: str  # which variables described it
+
+
+def _whole(env, name: str) -> int | None:
+    text = env.get(name, "").strip()
+    if not text:
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise InputError(f"{name}: {text!r} is not a whole number; it is set by the "
+                         "launcher (or by you: a process count or id 0, 1, …); fix or unset "
+                         "it to run alone.") from None
+
+
+def _slurm_tasks_on_node(env) -> int | None:
+    """Tasks of this SLURM step on this node, from ``SLURM_STEP_TASKS_PER_NODE`` (e.g.
+    ``2(x3),1``: 2 on each of the first 3 nodes, 1 on the fourth) and ``SLURM_NODEID``."""
+    text, node = env.get("SLURM_STEP_TASKS_PER_NODE", ""), _whole(env, "SLURM_NODEID")
+    counts = []
+    for part in filter(None, text.split(",")):
+        n, _, rep = part.partition("(x")
         try:
-            n = int(env["JAX_NUM_PROCESSES"])
-            pid = int(env.get("JAX_PROCESS_ID", ""))
+            counts += [int(n)] * (int(rep.rstrip(")")) if rep else 1)
         except ValueError:
+            return None
+    if node is None or not 0 <= node < len(counts):
+        return None
+    return counts[node]
+
+
+def launch_from_env(env=None) -> Launch | None:
+    """The multi-process job the environment describes, or None (run alone). Reads only
+    variables (no network, no JAX): what :func:`init_distributed` joins and what a dry
+    run prints. One line naming the variable and the fix for a contradiction.
+
+    - ``JAX_COORDINATOR_ADDRESS`` (host:port of process 0) with ``JAX_NUM_PROCESSES`` and
+      ``JAX_PROCESS_ID`` — any launcher; without those two the count and the rank come
+      from the launcher's own variables: Open MPI (``OMPI_COMM_WORLD_SIZE``/``_RANK``),
+      MPICH / Intel MPI / Hydra (``PMI_SIZE``/``PMI_RANK``) or a SLURM step
+      (``SLURM_NTASKS``/``SLURM_PROCID``);
+    - a SLURM job step of more than one task (``srun``: ``SLURM_NTASKS`` > 1 with
+      ``SLURM_STEP_NODELIST``, ``SLURM_PROCID`` and ``SLURM_JOB_ID``): the coordinator is
+      the step's first node, the port ``JAX_COORDINATOR_PORT`` or derived from the job id
+      (as JAX derives it). A batch script itself (``sbatch``, no step) runs alone;
+    - an Open MPI 4 launch (``OMPI_MCA_orte_hnp_uri``, ``OMPI_COMM_WORLD_SIZE`` > 1): the
+      coordinator is the launcher's host (as JAX derives it). Open MPI 5 and other MPIs
+      name no coordinator: give ``-x JAX_COORDINATOR_ADDRESS=HOST:PORT``.
+
+    ``JAX_LOCAL_DEVICE_IDS`` (e.g. ``0,1``) picks this process's GPUs; else, where a
+    launcher starts several processes on one node, each gets the GPU of its local rank
+    (``SLURM_LOCALID``, ``OMPI_COMM_WORLD_LOCAL_RANK``), and a lone process per node all
+    of them."""
+    env = os.environ if env is None else env
+    addr = env.get("JAX_COORDINATOR_ADDRESS", "").strip()
+    slurm_step = all(env.get(k) for k in ("SLURM_STEP_NODELIST", "SLURM_PROCID",
+                                            "SLURM_JOB_ID"))
+    n_slurm = _whole(env, "SLURM_NTASKS") if slurm_step else None
+    n_ompi = _whole(env, "OMPI_COMM_WORLD_SIZE")
+    n_pmi = _whole(env, "PMI_SIZE")
+    local = None
+    if addr:
+        n, pid = _whole(env, "JAX_NUM_PROCESSES"), _whole(env, "JAX_PROCESS_ID")
+        who = "JAX_* variables"
+        for name, size, rank in (("Open MPI", "OMPI_COMM_WORLD_SIZE", "OMPI_COMM_WORLD_RANK"),
+                                 ("MPI (PMI)", "PMI_SIZE", "PMI_RANK"),
+                                 ("SLURM", "SLURM_NTASKS", "SLURM_PROCID")):
+            if n is None and pid is None and _whole(env, size) and (
+                    name != "SLURM" or slurm_step):
+                n, pid = _whole(env, size), _whole(env, rank)
+                who = f"{name} with JAX_COORDINATOR_ADDRESS"
+        if n is None or pid is None:
             raise InputError(
-                "JAX_NUM_PROCESSES / JAX_PROCESS_ID: not whole numbers; set both (e.g. "
-                "JAX_NUM_PROCESSES=2 JAX_PROCESS_ID=0 on the first host) or unset "
-                "JAX_COORDINATOR_ADDRESS to run alone.") from None
-        if not (n >= 1 and 0 <= pid < n):
-            raise InputError(
-                f"JAX_PROCESS_ID: {pid} is not in [0, JAX_NUM_PROCESSES = {n}); give each "
-                "process its own id 0 … N − 1.")
-        if n == 1:
-            return False
-        jax.distributed.initialize(env["JAX_COORDINATOR_ADDRESS"], num_processes=n,
-                                   process_id=pid)
+                "JAX_COORDINATOR_ADDRESS is set but not JAX_NUM_PROCESSES and JAX_PROCESS_ID "
+                "(and no srun/mpirun variables give them): set both (e.g. JAX_NUM_PROCESSES=2 "
+                "JAX_PROCESS_ID=0 for the first process), or unset JAX_COORDINATOR_ADDRESS to "
+                "run alone.")
+        if ":" not in addr or not addr.rsplit(":", 1)[1].isdigit():
+            raise InputError(f"JAX_COORDINATOR_ADDRESS: {addr!r} is not HOST:PORT; give process "
+                             "0's host and a free port, e.g. 10.0.0.1:12345 (127.0.0.1:PORT on "
+                             "one machine).")
+    elif n_slurm is not None and n_slurm > 1:
+        n, pid, who = n_slurm, _whole(env, "SLURM_PROCID"), "SLURM (srun)"
+        addr = _cluster_address("SlurmCluster", env)
+        if (_slurm_tasks_on_node(env) or 1) > 1:
+            local = _whole(env, "SLURM_LOCALID")
+    elif env.get("OMPI_MCA_orte_hnp_uri") and (n_ompi or 1) > 1:
+        n, pid, who = n_ompi, _whole(env, "OMPI_COMM_WORLD_RANK"), "Open MPI (mpirun)"
+        addr = _cluster_address("OmpiCluster", env)
+        if (_whole(env, "OMPI_COMM_WORLD_LOCAL_SIZE") or 1) > 1:
+            local = _whole(env, "OMPI_COMM_WORLD_LOCAL_RANK")
+    elif (n_ompi or 1) > 1 or (n_pmi or 1) > 1:
+        raise InputError(
+            f"{'OMPI_COMM_WORLD_SIZE' if (n_ompi or 1) > 1 else 'PMI_SIZE'}: started by mpirun "
+            "as one of several processes, but the launcher names no coordinator: pass "
+            "JAX_COORDINATOR_ADDRESS=HOST:PORT (the first rank's host, a free port) to every "
+            "process, e.g. mpirun -x JAX_COORDINATOR_ADDRESS=… (Open MPI) or "
+            "mpiexec -genv JAX_COORDINATOR_ADDRESS … (MPICH).")
+    else:
+        return None
+    if pid is None or not (n >= 1 and 0 <= pid < n):
+        raise InputError(f"JAX_PROCESS_ID: {pid} is not in [0, {n}) (the number of processes, "
+                         f"from the {who}); give each process its own id 0 … N − 1.")
+    ids = env.get("JAX_LOCAL_DEVICE_IDS", "").strip()
+    if ids:
+        try:
+            local_ids = tuple(int(x) for x in ids.split(","))
+        except ValueError:
+            raise InputError(f"JAX_LOCAL_DEVICE_IDS: {ids!r} is not a list of device numbers "
+                             "such as 0,1; fix or unset it (all of this host's GPUs).") from None
+    else:
+        local_ids = None if local is None else (local,)
+    return Launch(addr, n, pid, local_ids, who)
+
+
+def _cluster_address(name: str, env) -> str:
+    """The coordinator JAX itself would derive for a SLURM / Open MPI launch."""
+    try:
+        from jax._src import clusters
+
+        cls = getattr(clusters, name)
+        saved = dict(os.environ)
+        os.environ.clear()
+        os.environ.update(env)  # JAX's classes read os.environ
+        try:
+            return cls.get_coordinator_address(
+                timeout_secs=None, override_coordinator_port=env.get("JAX_COORDINATOR_PORT"))
+        finally:
+            os.environ.clear()
+            os.environ.update(saved)
+    except Exception as exc:  # an unusual node list or URI, or another JAX version
+        var = "SLURM_STEP_NODELIST" if name == "SlurmCluster" else "OMPI_MCA_orte_hnp_uri"
+        raise InputError(f"{var}: cannot derive the coordinator's address ({exc}); set "
+                         "JAX_COORDINATOR_ADDRESS=HOST:PORT (the first process's host).") from None
+
+
+def dry_run() -> bool:
+    """``DIFSTAR_DRY_RUN``: 1/true/yes/on print the plan and compute nothing; unset, empty,
+    0/false/no/off run. Anything else is refused with one line."""
+    text = os.environ.get(ENV_DRY_RUN, "").strip().lower()
+    if text in ("", "0", "false", "no", "off"):
+        return False
+    if text in ("1", "true", "yes", "on"):
         return True
-    slurm = env.get("SLURM_NTASKS", "1")
-    if (slurm.isdigit() and int(slurm) > 1) or env.get("OMPI_MCA_orte_hnp_uri"):
-        jax.distributed.initialize()
+    raise InputError(f"{ENV_DRY_RUN}: {text!r}; give 1 to print the mesh and each process's "
+                     "work without computing, or unset it.")
+
+
+#: the job this process joined (or, in a dry run, would join): its Launch, JAX client,
+#: the coordinator process (process 0), and what the watchdog saw
+_JOB: dict = {}
+
+
+def init_distributed() -> bool:
+    """Join the multi-process job the environment describes (:func:`launch_from_env`);
+    returns whether it did. Call it before anything touches a device (the CLI does, first
+    thing, when ``--devices``/``DIFSTAR_DEVICES`` is used). In a dry run
+    (``DIFSTAR_DRY_RUN=1``) nothing is joined: the job is only noted, for the plan.
+
+    How a lost process is handled (docs/sharding.md, *When a process dies*): process 0
+    serves the coordination service from a small process of its own (so that the others
+    still reach it when process 0 itself dies), and a thread of each process watches which
+    processes are still connected. When one disappears without having ended, the next
+    collective (or the next chunk, or solver step) raises :class:`ProcessLost` naming it;
+    a process stuck elsewhere is ended after :data:`LOST_GRACE` seconds with the same one
+    line. Without this JAX's coordination service aborts the survivors (SIGABRT, a C++
+    stack trace), 0.2 s after process 0 dies or 100 s after another does.
+    """
+    if jax.distributed.is_initialized() or _JOB.get("client") is not None:
         return True
-    return False
+    launch = launch_from_env()
+    if launch is None or launch.num_processes == 1:
+        return False
+    if dry_run():
+        _JOB["planned"] = launch
+        return False
+    _join(launch)
+    return True
+
+
+_COORDINATOR = r"""
+import sys, time
+try:
+    from jaxlib import _jax
+except ImportError:
+    from jax._src.lib import _jax
+bind, n, beat, linger = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
+kw = dict(heartbeat_timeout=beat, shutdown_timeout=60)
+try:
+    try:  # recoverable: a dead task is not reported to the others as a fatal error
+        svc = _jax.get_distributed_runtime_service(bind, n, recoverable=True, **kw)
+    except TypeError:
+        svc = _jax.get_distributed_runtime_service(bind, n, **kw)
+except Exception as e:
+    print("error: " + " ".join(str(e).split()), flush=True)
+    sys.exit(1)
+print("ready", flush=True)
+said = sys.stdin.readline().strip()  # "bye" when process 0 ends; "" when it died
+time.sleep(0.5 if said == "bye" else linger)
+svc.shutdown()
+"""
+
+
+def _join(launch: Launch) -> None:
+    import atexit
+    import subprocess
+    import sys
+
+    try:
+        from jax._src import distributed as jd
+        from jax._src.lib import _jax
+
+        make_client = _jax.get_distributed_runtime_client
+        state = jd.global_state
+    except (ImportError, AttributeError):  # another JAX: its own join, its own failures
+        jax.distributed.initialize(launch.coordinator, launch.num_processes,
+                                   launch.process_id, local_device_ids=launch.local_device_ids)
+        return
+    env = os.environ
+    beat = _whole(env, ENV_HEARTBEAT) or 100
+    wait = _whole(env, ENV_JOIN_TIMEOUT) or 300
+    n, me = launch.num_processes, launch.process_id
+    helper = None
+    if me == 0:
+        port = launch.coordinator.rsplit(":", 1)[1]
+        bind = env.get("JAX_COORDINATOR_BIND_ADDRESS", f"[::]:{port}")
+        helper = subprocess.Popen(
+            [sys.executable, "-c", _COORDINATOR, bind, str(n), str(beat),
+             str(COORDINATOR_LINGER)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+        said = helper.stdout.readline().strip()
+        helper.stdout.close()
+        if said != "ready":
+            helper.wait()
+            raise InputError(f"JAX_COORDINATOR_ADDRESS {launch.coordinator}: process 0 cannot "
+                             f"serve the job's coordinator on {bind} "
+                             f"({said.removeprefix('error: ') or 'it ended'}); choose a free "
+                             "port.")
+    if launch.local_device_ids:
+        visible = ",".join(map(str, launch.local_device_ids))
+        for flag in ("jax_cuda_visible_devices", "jax_rocm_visible_devices"):
+            try:
+                jax.config.update(flag, visible)
+            except (AttributeError, ValueError):
+                pass
+    try:
+        client = make_client(launch.coordinator, me, init_timeout=wait, heartbeat_timeout=beat,
+                             use_compression=True, shutdown_on_destruction=False)
+        state.coordinator_address = launch.coordinator
+        state.process_id, state.num_processes = me, n
+        state.client = client
+        client.connect()
+    except Exception as exc:
+        state.client = None
+        if helper is not None:
+            helper.kill()
+        raise InputError(
+            f"JAX_COORDINATOR_ADDRESS {launch.coordinator}: process {me} of {n} could not join "
+            f"the job in {wait} s ({' '.join(str(exc).split())[:200]}); start every process "
+            f"(ids 0 … {n - 1}) with the same address and count ({ENV_JOIN_TIMEOUT} sets "
+            "the wait).") from None
+    # JAX's preemption service is left off: it swallows SIGTERM (a scheduler's or
+    # timeout's stop would be ignored) and difstar has no preemption sync points
+    _JOB.update(launch=launch, client=client, helper=helper, lost=None, reported=False,
+                ending=False)
+    threading.Thread(target=_watch, name="difstar-watch", daemon=True).start()
+    atexit.register(_at_exit)  # runs before JAX's own clean-up (registered earlier)
+
+
+def _beats(client) -> dict[int, str]:
+    """Every process's heartbeat counter (or ``"exit"``: it ended normally)."""
+    return {int(k.rsplit("/", 1)[1]): v for k, v in client.key_value_dir_get("difstar/beat/")}
+
+
+def _lost_message(p: int, n: int, ended: bool) -> str:
+    if ended:
+        return (f"process {p} of {n} ended before the job was done (see its own message); "
+                "the job is ended, nothing was written")
+    return f"process {p} of {n} stopped responding; the job is ended, nothing was written"
+
+
+def _lose(message: str) -> None:
+    if _JOB.get("lost"):
+        return
+    _JOB["lost"] = message
+
+    def end():
+        time.sleep(LOST_GRACE)
+        _hard_exit()
+
+    threading.Thread(target=end, name="difstar-lost", daemon=True).start()
+
+
+def _hard_exit() -> None:
+    """End this process now: the main thread did not end by itself (it waits inside a
+    computation or a collective that will not return)."""
+    import sys
+
+    if not _JOB.get("reported"):
+        _JOB["reported"] = True
+        try:
+            sys.stderr.write(f"difstar: error: {_JOB['lost']}\n")
+        except Exception:
+            pass
+    for f in (sys.stdout, sys.stderr):
+        try:
+            f.flush()
+        except Exception:
+            pass
+    helper, launch = _JOB.get("helper"), _JOB.get("launch")
+    if helper is not None and launch is not None and launch.num_processes == 2:
+        try:  # the one other process is lost: nobody needs the coordinator any more
+            helper.stdin.write("bye\n")
+            helper.stdin.close()
+        except Exception:
+            pass
+    os._exit(EXIT_LOST)
+
+
+def _watch() -> None:
+    """The watchdog thread: beats this process's counter in the job's key-value store and
+    watches the others'. A process whose counter stops for :data:`LOST_AFTER` seconds
+    (:data:`SUSPECT_AFTER` once a collective failed) without having said it ended is
+    lost. (The coordination service's own liveness call, ``get_live_nodes``, waits for
+    every listed process to call it as well, and a call made before a process died
+    waits for its heartbeat timeout: unusable here.)"""
+    job = _JOB
+    client, launch = job["client"], job["launch"]
+    me, n = launch.process_id, launch.num_processes
+    seen = {p: (None, time.monotonic()) for p in range(n) if p != me}
+    count, last = 0, time.monotonic()
+    while not job["ending"] and not job["lost"]:
+        time.sleep(WATCH_EVERY)
+        count += 1
+        try:
+            client.key_value_set(f"difstar/beat/{me}", str(count), allow_overwrite=True)
+            beats = _beats(client)
+        except Exception:  # the coordination service is gone with process 0's host
+            if not job["ending"]:
+                _lose(_lost_message(0, n, False).replace(
+                    "stopped responding", "(the coordinator) stopped responding"))
+            return
+        now = time.monotonic()
+        if now - last > LOST_AFTER / 2:  # this thread itself was held up: judge nobody
+            seen = {p: (v, now) for p, (v, _) in seen.items()}
+        last = now
+        limit = SUSPECT_AFTER if job.get("suspect") else LOST_AFTER
+        for p, (v, t) in list(seen.items()):
+            b = beats.get(p)
+            if b == "exit":
+                seen.pop(p)
+                if job.get("suspect"):  # it left while this process waits on it
+                    _lose(_lost_message(p, n, True))
+            elif b != v:
+                seen[p] = (b, now)
+            elif now - t > limit and not job["ending"]:
+                _lose(_lost_message(p, n, False))
+        if job["lost"]:
+            return
+
+
+def check_lost() -> None:
+    """Raise :class:`ProcessLost` if the job has lost a process (called between chunks,
+    solver steps and solve rounds, so a process busy with its own work ends soon too)."""
+    msg = _JOB.get("lost")
+    if msg:
+        _JOB["reported"] = True
+        raise ProcessLost(msg)
+
+
+def _collective(fn, *args):
+    """A cross-process collective: a failure that comes from a lost process is raised as
+    :class:`ProcessLost` naming it (a killed process's sockets close and Gloo fails at
+    once; its heartbeat then stops, and the watchdog names it within
+    :data:`SUSPECT_AFTER` seconds; one that ended early has said so)."""
+    job = _JOB
+    if job.get("client") is None:
+        return fn(*args)
+    check_lost()
+    try:
+        return fn(*args)
+    except Exception:
+        job["suspect"] = True
+        t_end = time.monotonic() + SUSPECT_AFTER + 3.0
+        while not job.get("lost") and time.monotonic() < t_end:
+            time.sleep(0.05)
+        if job.get("lost"):
+            job["reported"] = True
+            raise ProcessLost(job["lost"]) from None
+        job["suspect"] = False
+        raise
+
+
+def _at_exit() -> None:
+    """At the end of a process of the job. After a loss: end now (JAX's own shut-down
+    would wait for the lost process, then abort). Else say so in the key-value store and
+    disconnect; process 0, whose helper serves the coordinator, first waits until every
+    other process has said so (or is lost)."""
+    import sys
+
+    job = _JOB
+    client = job.get("client")
+    if client is None:
+        return
+    if job.get("lost"):
+        _hard_exit()
+    launch = job["launch"]
+    me, n = launch.process_id, launch.num_processes
+    if me != 0:
+        job["ending"] = True
+    try:
+        client.key_value_set(f"difstar/beat/{me}", "exit", allow_overwrite=True)
+    except Exception:
+        pass
+    if me == 0:
+        while not job.get("lost"):
+            try:
+                if sum(v == "exit" for p, v in _beats(client).items() if p) == n - 1:
+                    break
+            except Exception:
+                break
+            time.sleep(0.1)
+        job["ending"] = True
+        if job.get("lost"):  # after every result was gathered: a warning
+            sys.stderr.write(f"difstar: warning: {job['lost'].split(';')[0]} as the job "
+                             "ended (after every result was gathered)\n")
+            job["lost"] = None
+        time.sleep(0.5)  # the others' disconnection, sent right after their word
+    try:
+        jax.distributed.shutdown()
+    except Exception:
+        pass
+    job["client"] = None
+    helper = job.get("helper")
+    if helper is not None:
+        try:
+            helper.stdin.write("bye\n")
+            helper.stdin.close()
+        except Exception:
+            pass
+
+
+def writes_output() -> bool:
+    """Whether this process writes the job's outputs: process 0 of a multi-process job
+    (every process holds every result, one writes them), the only process otherwise."""
+    return jax.process_index() == 0
 
 
 def device_count(devices=None, *, flag: str = "--devices") -> int:
     """How many devices to use: ``devices`` if given, else ``DIFSTAR_DEVICES``, else all
     of them. :class:`InputError` (one line: the flag and the fix) for < 1, NaN, a
-    fraction, or more than exist."""
-    have = jax.device_count()
+    fraction, or more than exist. In a dry run of a multi-process job, the devices of
+    every process (each assumed to have as many as this one)."""
+    planned = _JOB.get("planned")
+    have = (planned.num_processes * jax.local_device_count() if planned is not None
+            else jax.device_count())
     where = flag
     if devices is None:
         text = os.environ.get(ENV_DEVICES, "").strip()
@@ -130,9 +583,77 @@ def device_count(devices=None, *, flag: str = "--devices") -> int:
 
 def device_mesh(n_devices=None) -> Mesh:
     """A one-axis mesh (``"batch"``) of the first ``n_devices`` devices (default: as
-    :func:`device_count`), across every host in a multi-process job."""
+    :func:`device_count`), across every host in a multi-process job. In a dry run: the
+    mesh is printed (one fit's Jacobian columns are its work) and :class:`DryRun` raised."""
     n = device_count(n_devices)
+    if dry_run():
+        _print_plan(None, n, what="Jacobian columns of one fit")
     return Mesh(np.asarray(jax.devices()[:n]), (AXIS,))
+
+
+def _ranges(idx) -> str:
+    """0 1 2 5 6 → '0–2, 5–6'."""
+    idx = list(idx)
+    if not idx:
+        return "none"
+    out, start = [], idx[0]
+    for a, b in zip(idx, idx[1:] + [None]):
+        if b != a + 1:
+            out.append(f"{start}" if start == a else f"{start}–{a}")
+            start = b
+    return ", ".join(out)
+
+
+def plan_lines(n_items: int | None, n_devices: int, *, chunk=None, what: str = "items",
+               launch: Launch | None = None, local_devices: int | None = None,
+               platform: str = "cpu") -> list[str]:
+    """The dry run's text: the mesh (processes × devices each) and, per process, its
+    devices and the items each chunk gives it (``n_items`` None: the mesh only)."""
+    n_proc = 1 if launch is None else launch.num_processes
+    local = local_devices or max(1, -(-n_devices // n_proc))
+    who = "" if launch is None else (f" (launched by {launch.launcher}; coordinator "
+                                     f"{launch.coordinator})")
+    lines = [f"mesh: {n_devices} {platform} device(s) of {n_proc} process(es), {local} "
+             f"device(s) per process{who}"]
+    if n_items is None:
+        lines.append(f"work: the {what}, shared over the {n_devices} devices")
+        procs = range(n_proc)
+        for p in procs:
+            devs = [d for d in range(n_devices) if d // local == p]
+            lines.append(f"process {p}: devices {_ranges(devs)}")
+        return lines
+    plan = plan_chunks(n_items, n_devices, chunk=chunk)
+    size, k = plan.chunk, plan.per_device
+    pad = plan.chunks * size - n_items
+    sizing = ("" if chunk is not None else
+              " (without --chunk the run may split it further to fit the devices' memory)")
+    lines.append(f"work: {n_items} {what} in {plan.chunks} chunk(s) of {size} ({k} per "
+                 f"device), {pad} padding item(s){sizing}")
+    for p in range(n_proc):
+        devs = [d for d in range(n_devices) if d // local == p]
+        items = [c * size + d * k + j for c in range(plan.chunks) for d in devs
+                 for j in range(k)]
+        real = [i for i in items if i < n_items]
+        extra = len(items) - len(real)
+        lines.append(f"process {p}: devices {_ranges(devs)}: {what} {_ranges(real)}"
+                     + (f" (+{extra} padding)" if extra else ""))
+    return lines
+
+
+def _print_plan(n_items, n_devices, *, chunk=None, what="items"):
+    """Print the dry run's plan to stdout and raise :class:`DryRun`."""
+    import sys
+
+    launch = _JOB.get("planned") or _JOB.get("launch")
+    lines = plan_lines(n_items, n_devices, chunk=chunk, what=what, launch=launch,
+                       local_devices=jax.local_device_count(), platform=jax.default_backend())
+    me = 0 if launch is None else launch.process_id
+    if me != 0:  # every process prints its own line; process 0 the whole plan
+        lines = lines[:2] + [x for x in lines[2:] if x.startswith(f"process {me}:")]
+    sys.stdout.write("".join(f"difstar dry run: {x}\n" for x in lines)
+                     + "difstar dry run: nothing was computed or written.\n")
+    sys.stdout.flush()
+    raise DryRun()
 
 
 def device_memory(device=None) -> int:
@@ -195,7 +716,7 @@ def gather(tree):
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
-        return multihost_utils.process_allgather(tree, tiled=True)
+        return _collective(lambda: multihost_utils.process_allgather(tree, tiled=True))
     return jax.tree_util.tree_map(np.asarray, tree)
 
 
@@ -317,6 +838,8 @@ def map_batch(fn: Callable, batch: Any, *, devices=None, chunk=None,
     each chunk. ``plan_out``, a list, receives the :class:`Plan`.
     """
     n_items = _leading(batch)
+    if dry_run():
+        _print_plan(n_items, device_count(devices), chunk=chunk)
     mesh = device_mesh(devices)
     nd = mesh.size
     run = sharded_vmap(fn, mesh)
@@ -345,6 +868,7 @@ def map_batch(fn: Callable, batch: Any, *, devices=None, chunk=None,
     size = plan.chunk
     outs = []
     for start in range(0, n_items, size):
+        check_lost()
         idx = np.arange(start, min(start + size, n_items))
         y = gather(run(padded(idx, size)))
         outs.append(jax.tree_util.tree_map(lambda a, m=len(idx): a[:m], y))
@@ -423,6 +947,9 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
     n_items = u0.shape[0]
     if _leading(args) != n_items:
         raise ValueError("difstar solve_many: u0 and args need the same number of fits.")
+    if dry_run():
+        _print_plan(n_items, device_count(devices), chunk=chunk,
+                    what="fits (each solve round)")
     mesh = device_mesh(devices)
     devs = list(mesh.devices.flat)
     nd = len(devs)
@@ -473,6 +1000,7 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
         for d in mine:
             owned[sl[d]] = True
         for k in range(1, max_steps + 1):
+            check_lost()
             t1 = time.perf_counter()
             outs = {}
             for d in mine:  # dispatched to every device before any result is read
@@ -507,8 +1035,8 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
         if jax.process_count() > 1:  # every process's fits, to every process
             from jax.experimental import multihost_utils
 
-            u_all, meta_all, own_all = multihost_utils.process_allgather(
-                (u_blk, meta, owned.astype(float)))
+            u_all, meta_all, own_all = _collective(
+                multihost_utils.process_allgather, (u_blk, meta, owned.astype(float)))
             pick = np.argmax(own_all, axis=0)
             u_blk = u_all[pick, np.arange(size)]
             meta = meta_all[pick, np.arange(size)]
@@ -606,6 +1134,7 @@ class FitBatcher:
                     break
                 batch, self._pending = self._pending, {}
             self._round += 1
+            check_lost()
             groups: dict[tuple, list[int]] = {}
             for job, req in sorted(batch.items()):
                 groups.setdefault(req["key"], []).append(job)
@@ -687,7 +1216,9 @@ def simulate_spectral(camera, scene, grid, *, devices=None, chunk=None,
 
 
 __all__ = [
-    "AXIS", "ENV_DEVICES", "FILL", "FitBatcher", "ItemSolve", "Plan", "device_count", "device_memory",
-    "device_mesh", "gather", "init_distributed", "map_batch", "plan_chunks", "shard",
-    "lapack_in_turn", "per_item", "sharded_vmap", "simulate_spectral", "solve_many",
+    "AXIS", "ENV_DEVICES", "ENV_DRY_RUN", "EXIT_LOST", "FILL", "DryRun", "FitBatcher",
+    "ItemSolve", "Launch", "Plan", "ProcessLost", "check_lost", "device_count",
+    "device_memory", "device_mesh", "dry_run", "gather", "init_distributed",
+    "launch_from_env", "map_batch", "plan_chunks", "plan_lines", "shard", "lapack_in_turn",
+    "per_item", "sharded_vmap", "simulate_spectral", "solve_many", "writes_output",
 ]

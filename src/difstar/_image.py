@@ -10,6 +10,7 @@ The predicted image is C = IFFT(OTF · FFT(B)) (circular convolution on the grid
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from ._atf import centred_coordinates
@@ -53,15 +54,25 @@ def geometric_image(
     h, w = shape
     x = centred_coordinates(w, pixel_pitch)[None, :]
     y = -centred_coordinates(h, pixel_pitch)[:, None]
-    out = jnp.zeros((3, h, w))
-    for s in sources:
+
+    def add(out, s):
+        radius, position, radiance = s
         cov = disc_coverage(
-            jnp.abs(magnification) * s.radius,
-            magnification * s.position[0],
-            magnification * s.position[1],
+            jnp.abs(magnification) * radius,
+            magnification * position[0],
+            magnification * position[1],
             x, y, pixel_pitch, subsamples=4,
         )
-        out = out + s.radiance[:, None, None] * cov[None]
+        return out + radiance[:, None, None] * cov[None], None
+
+    if not sources:
+        return jnp.zeros((3, h, w))
+    # one source at a time (lax.scan): traced and compiled once whatever their number,
+    # with the memory of one coverage map
+    stacked = (jnp.stack([jnp.asarray(s.radius, float) for s in sources]),
+               jnp.stack([jnp.asarray(s.position, float) for s in sources]),
+               jnp.stack([jnp.asarray(s.radiance, float) for s in sources]))
+    out, _ = jax.lax.scan(add, jnp.zeros((3, h, w)), stacked)
     return out
 
 

@@ -50,6 +50,8 @@ MAX_SPIDERS = 64
 #: the same bound as scene files'): difstar.psf's ``wavelength``, a spectral sensor's K,
 #: choose_wavelengths' ``max_wavelengths``
 MAX_WAVELENGTHS = 1024
+#: the most disc sources a scene may hold (each is rasterised over the whole window)
+MAX_SOURCES = 1024
 #: at most this many straight edges in one outline that difstar.psf / simulate take
 #: (Polygon vertices, RegularPolygon.n, CurvedIris.n × segments, vanes): the closed form
 #: costs time and memory per edge (1024 edges: 15 s and 1 GB for a 32 × 32 px window on
@@ -471,6 +473,10 @@ def check_camera_scene(camera, scene, *, where: str = "") -> None:
     check_array(scene.object_distance, f"{p}scene.object_distance", gt=0, fix="metres")
     check_array(scene.exposure_time, f"{p}scene.exposure_time", gt=0, fix="seconds")
     check_array(scene.background, f"{p}scene.background", ge=0)
+    if len(scene.sources) > MAX_SOURCES:
+        raise InputError(f"{p}scene.sources: {len(scene.sources)} sources; at most "
+                         f"{MAX_SOURCES} (each is a coverage map of the whole window): merge "
+                         "faint ones, or pass a pixel array of the scene instead.")
     for i, s in enumerate(scene.sources):
         check_array(s.radius, f"{p}scene.sources[{i}].radius", gt=0, fix="metres")
         check_array(s.position, f"{p}scene.sources[{i}].position", fix="metres")
