@@ -542,6 +542,15 @@ def test_fit_refuses_what_predict_refuses(work, capsys):
     refused(["fit", p, "--out", work, "--overwrite"], capsys, work, "current folder")
 
 
+def test_fit_refuses_unbounded_capture_lists(work, capsys):
+    """2000 captures (was: no answer after minutes), 17 configurations: refused by the
+    schema before any capture is read."""
+    man = base_manifest(work)
+    man["captures"] = [dict(man["captures"][i % 10], name=f"c{i}") for i in range(2000)]
+    p = write_text(work / "m.json", json.dumps(man))
+    refused(["fit", p], capsys, work, "field captures", "at most 64")
+
+
 def test_fit_checks_the_captures(work, capsys):
     # a capture of the wrong size (the DNGs are 192 × 192)
     p = write_text(work / "m.json", json.dumps(base_manifest(work, frame_size=[256, 256])))

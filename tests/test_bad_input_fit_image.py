@@ -258,6 +258,12 @@ def test_bad_manifest_is_refused_naming_the_field(work, capsys, name, path, valu
     refused_fit_image(work, capsys, *fields, man=man)
 
 
+def test_more_than_64_captures_are_refused(work, capsys):
+    np.save(work / "star.npy", star())
+    caps = [{"path": "star.npy", "sigma": 1.0}] * 65
+    refused_fit_image(work, capsys, "field data", man=edited(("data",), caps))
+
+
 def test_bad_json_is_refused(work, capsys):
     text = json.dumps(BASE)
     dup = text.replace('"max_steps": 20', '"max_steps": 20, "max_steps": 30')
