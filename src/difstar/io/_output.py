@@ -386,8 +386,11 @@ def output_dir(dest: str | Path, *, overwrite: bool = False, inputs: Iterable = 
                 tmp = None
                 raise OutputError(f"{what} {dest}: cannot write there ({exc.strerror}).") \
                     from None
-            _write_marker(tmp, [], command, token)
+            # the lock first, then the marker's content: a run is never seen with a
+            # valid marker and a free lock while it lives
+            (tmp / MARKER).touch()
             lock = _lock(tmp)
+            _write_marker(tmp, [], command, token)
             try:
                 yield tmp
             except OSError as exc:
