@@ -900,3 +900,41 @@ def test_validate_module_units():
     with pytest.raises(InputError, match="self-intersecting"):
         check_polygon_vertices([[0, 0], [1, 1], [1, 0], [0, 1]])
     assert check_polygon_vertices(np.array([[0, 0], [1, 0], [0, 1]])).shape == (3, 2)
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_concurrent_writers_leave_one_whole_folder(tmp_path, overwrite):
+    """Eight writers on one destination at once: one whole result (every file from the
+    same writer), the others refused (or, with overwrite, replaced whole), nothing else
+    left beside it."""
+    import threading
+
+    from difstar.io._output import OutputExistsError, output_dir
+
+    dest = tmp_path / "out"
+    errors, done = [], []
+    start = threading.Barrier(8)
+
+    def writer(i):
+        try:
+            start.wait()
+            with output_dir(dest, overwrite=overwrite, command="test") as tmp:
+                for k in range(5):
+                    (tmp / f"f{k}.txt").write_text(str(i))
+                    time.sleep(0.002)
+            done.append(i)
+        except OutputExistsError as e:
+            errors.append(e)
+
+    threads = [threading.Thread(target=writer, args=(i,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(done) + len(errors) == 8 and done
+    if not overwrite:
+        assert len(done) == 1
+    ids = {(dest / f"f{k}.txt").read_text() for k in range(5)}
+    assert len(ids) == 1 and int(ids.pop()) in done
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert sorted(p.name for p in dest.iterdir()) == [MARKER] + [f"f{k}.txt" for k in range(5)]

@@ -120,6 +120,27 @@ def _lock(folder: Path):
     return fh
 
 
+@contextlib.contextmanager
+def _folder_lock(folder: Path):
+    """An exclusive lock on ``folder`` itself (``flock`` on its descriptor) while a
+    destination in it is checked and swapped: concurrent writers (processes on this
+    host, or threads) commit one at a time. Where it cannot be taken, nothing is locked."""
+    fd = None
+    if fcntl is not None:
+        try:
+            fd = os.open(folder, os.O_RDONLY)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError:
+            if fd is not None:
+                os.close(fd)
+            fd = None
+    try:
+        yield
+    finally:
+        if fd is not None:
+            os.close(fd)  # closing releases the lock
+
+
 def _abandoned(entry: Path) -> bool:
     """True only for a temporary folder of a difstar run that is certainly over: named
     like one, holding a marker with the token of its name written on this host, and
@@ -368,7 +389,8 @@ def output_dir(dest: str | Path, *, overwrite: bool = False, inputs: Iterable = 
     inputs = list(inputs)
     dest = Path(os.path.abspath(dest))
     check = dict(overwrite=overwrite, inputs=inputs, replaceable=replaceable, what=what)
-    check_output_free(dest, expected_bytes=expected_bytes, **check)
+    with _folder_lock(_first_existing(dest.parent)):
+        check_output_free(dest, expected_bytes=expected_bytes, **check)
     with _signals_raise():
         made = []
         tmp = None
@@ -405,23 +427,26 @@ def output_dir(dest: str | Path, *, overwrite: bool = False, inputs: Iterable = 
                 if exc.errno in _DISK_ERRORS:
                     raise _disk_error(exc, dest, what) from None
                 raise
-            # the destination may have changed while we computed: check again
-            check_output_free(dest, **check)
-            _check_terminated()
-            if dest.exists():
-                # the old result moves into our own marked folder first: a run killed
-                # between the two renames leaves it there, and the next run puts it back
-                os.replace(dest, tmp / DISPLACED)
-                try:
+            # the destination may have changed while we computed: check again, and swap
+            # while no other difstar run commits beside it
+            with _folder_lock(dest.parent):
+                check_output_free(dest, **check)
+                _check_terminated()
+                if dest.exists():
+                    # the old result moves into our own marked folder first: a run killed
+                    # between the two renames leaves it there, and the next run puts it
+                    # back
+                    os.replace(dest, tmp / DISPLACED)
+                    try:
+                        os.replace(tmp, dest)
+                    except BaseException:
+                        os.replace(tmp / DISPLACED, dest)
+                        raise
+                    tmp = None
+                else:
                     os.replace(tmp, dest)
-                except BaseException:
-                    os.replace(tmp / DISPLACED, dest)
-                    raise
-                tmp = None
-                shutil.rmtree(dest / DISPLACED, ignore_errors=True)
-            else:
-                os.replace(tmp, dest)
-                tmp = None
+                    tmp = None
+            shutil.rmtree(dest / DISPLACED, ignore_errors=True)
         except BaseException:
             if tmp is not None:
                 shutil.rmtree(tmp, ignore_errors=True)
