@@ -53,15 +53,13 @@ GEOMETRIC = textwrap.dedent('''
                     "convexity_margin_rad": pu.convexity_margin(),
                     "circumradius_m": pu.circumradius}, None, None, None
         return values
-
-    D.measures_fn = geometric
 ''')
 
 SWEEP = ["--x64", "design", "--sweep-curvature", "0", "0.9", "6", "--chunk", "4"]
 
 #: process 0 and 1's work: difstar.map_batch of 8 PSFs, then the command line's design
 #: sweep (`difstar design --sweep-curvature 0 0.9 6 --chunk 4 --devices 2`), one job
-WORKER = GEOMETRIC + textwrap.dedent(f'''
+WORKER = GEOMETRIC + "D.measures_fn = geometric\n" + textwrap.dedent(f'''
     import json, os, sys
     import jax
     jax.config.update("jax_enable_x64", True)
@@ -89,7 +87,7 @@ WORKER = GEOMETRIC + textwrap.dedent(f'''
 
 #: the same sweep, 12 designs in chunks of 2: the victim stops in its third chunk and
 #: waits to be killed; the survivor must end by itself
-KILL_WORKER = GEOMETRIC + textwrap.dedent('''
+KILL_WORKER = GEOMETRIC + "D.measures_fn = geometric\n" + textwrap.dedent('''
     import os, sys, time
     import jax
     from difstar import _batch as B
@@ -104,6 +102,8 @@ KILL_WORKER = GEOMETRIC + textwrap.dedent('''
             with open(os.path.join(out, "victim-waits.tmp"), "w") as f:
                 f.write(str(os.getpid()))
             os.replace(os.path.join(out, "victim-waits.tmp"), os.path.join(out, "victim-waits"))
+            if os.environ.get("VICTIM_FAILS"):
+                raise ValueError("a failure of its own")
             time.sleep(120)  # killed here by the test
         return real_gather(tree)
 
@@ -124,14 +124,14 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_pair(code: str, args: list[str], logs: Path) -> list[subprocess.Popen]:
+def start_pair(code: str, args: list[str], logs: Path, **extra) -> list[subprocess.Popen]:
     """The two processes of docs/sharding.md's one-host example, each with one CPU
     device; stdout/stderr go to ``logs/{out,err}{i}.txt``."""
     port = free_port()
     procs = []
     for i in (0, 1):
         env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}",
-                   JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(i))
+                   JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(i), **extra)
         for k in ("XLA_FLAGS", B.ENV_DEVICES, B.ENV_DRY_RUN):
             env.pop(k, None)
         with open(logs / f"out{i}.txt", "w") as o, open(logs / f"err{i}.txt", "w") as e:
@@ -177,7 +177,7 @@ def test_two_processes_give_the_one_process_results(tmp_path, monkeypatch):
     from difstar.cli import main
 
     space: dict = {}
-    exec(GEOMETRIC, space)  # noqa: S102 - the children's measure, here for the reference
+    exec(GEOMETRIC, space)  # the children's measure (defined only), for the reference
     monkeypatch.setattr(D, "measures_fn", space["geometric"])
 
     out = tmp_path / "out"
@@ -275,6 +275,52 @@ def test_a_killed_process_ends_the_other_with_one_line(tmp_path, victim):
     removed = remove_stale(out)  # the killed one's folder: abandoned, removed by a next run
     assert [x.name for x in removed] == [x for x in left if x.startswith(f".sweep{victim}.")]
     assert not [x for x in out.iterdir() if "difstar-tmp" in x.name]
+
+
+def test_a_process_that_fails_ends_the_other_with_one_line(tmp_path):
+    """Process 1 fails with an error of its own in the third chunk (its own line, exit 2);
+    process 0, waiting on it in the collective, ends at once with one line saying so."""
+    out = tmp_path / "out"
+    out.mkdir()
+    procs = start_pair(KILL_WORKER, [str(out), "1"], tmp_path, VICTIM_FAILS="1")
+    try:
+        wait_all(procs, tmp_path, 60)
+    finally:
+        pid = out / "coordinator.pid"
+        if pid.exists():
+            try:
+                os.kill(int(pid.read_text()), signal.SIGKILL)
+            except (ProcessLookupError, ValueError):
+                pass
+    assert [p.returncode for p in procs] == [2, 2], tails(tmp_path)
+    last = [(tmp_path / f"err{i}.txt").read_text().strip().splitlines()[-1] for i in (0, 1)]
+    assert last == ["difstar: error: process 1 of 2 ended before the job was done (see its "
+                    "own message); the job is ended, nothing was written",
+                    "difstar: error: a failure of its own"], tails(tmp_path)
+    for i in (0, 1):
+        err = (tmp_path / f"err{i}.txt").read_text()
+        assert sum("error" in x for x in err.splitlines()) == 1, err
+        assert "Traceback" not in err and "Check failure" not in err, err
+    assert sorted(x.name for x in out.iterdir()) == ["coordinator.pid", "victim-waits"]
+
+
+def test_a_process_alone_is_refused_in_bounded_time(tmp_path):
+    """Process 1 started without process 0 (nobody serves the coordinator): after
+    DIFSTAR_JOIN_TIMEOUT one line and exit status 2 (JAX alone aborts with a C++ trace)."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COORDINATOR_ADDRESS=f"127.0.0.1:"
+               f"{free_port()}", JAX_NUM_PROCESSES="2", JAX_PROCESS_ID="1",
+               DIFSTAR_JOIN_TIMEOUT="1")
+    p = subprocess.run([sys.executable, "-m", "difstar.cli", "design", "--sweep-curvature",
+                        "0", "0.9", "2", "--quick", "--devices", "2", "--out",
+                        str(tmp_path / "o")], cwd=ROOT, env=env, capture_output=True,
+                       text=True, timeout=60)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip().splitlines() == [
+        f"difstar: error: JAX_COORDINATOR_ADDRESS {env['JAX_COORDINATOR_ADDRESS']}: process 1 "
+        "of 2 could not join the job within 1 s; start every process (ids 0 … 1) with the "
+        "same address and JAX_NUM_PROCESSES, process 0 on that host (DIFSTAR_JOIN_TIMEOUT "
+        "sets the wait)."], p.stderr
+    assert not list(tmp_path.iterdir())
 
 
 def test_dry_run_prints_the_mesh_and_each_process_work(tmp_path, monkeypatch, capsys):

@@ -21,8 +21,12 @@ per chunk and strips the padding. The jitted core is ``fn`` itself and stays pur
 - :func:`simulate_spectral` — a spectral :func:`difstar.simulate` whose wavelengths are
   the batch: the linear image is linear in the PSF, so it is the weighted sum of the
   monochromatic images, and the sensor is applied once to the sum.
-- :func:`init_distributed` — ``jax.distributed.initialize()`` when the environment
-  names a multi-process job (see ``docs/sharding.md`` for the commands).
+- :func:`init_distributed` — join the multi-process job the environment names
+  (:func:`launch_from_env`: ``JAX_*`` variables, ``srun``, ``mpirun``), with a watchdog
+  that turns a lost process into one :class:`ProcessLost` line instead of JAX's abort;
+  :func:`writes_output` (process 0 writes); ``DIFSTAR_DRY_RUN=1`` (:func:`dry_run`)
+  prints the mesh and each process's items and computes nothing (see
+  ``docs/sharding.md`` for the commands).
 
 Memory: the per-item bytes of the compiled chunk (``Compiled.memory_analysis()``: its
 arguments, outputs and temporaries, per device, divided by the items each device holds)
@@ -73,7 +77,7 @@ WATCH_EVERY = 0.25
 #: seconds without a heartbeat after which a process counts as lost; after a collective
 #: failed (a peer's sockets closed), :data:`SUSPECT_AFTER`
 LOST_AFTER = 10.0
-SUSPECT_AFTER = 2.0
+SUSPECT_AFTER = 1.0
 #: seconds a process that saw another die gives its main thread to end by itself (the
 #: clean way: the exception unwinds, temporaries are removed) before it ends the process
 LOST_GRACE = 10.0
@@ -224,7 +228,7 @@ def _cluster_address(name: str, env) -> str:
         from jax._src import clusters
 
         cls = getattr(clusters, name)
-        saved = dict(os.environ)
+        env, saved = dict(env), dict(os.environ)
         os.environ.clear()
         os.environ.update(env)  # JAX's classes read os.environ
         try:
@@ -264,12 +268,13 @@ def init_distributed() -> bool:
 
     How a lost process is handled (docs/sharding.md, *When a process dies*): process 0
     serves the coordination service from a small process of its own (so that the others
-    still reach it when process 0 itself dies), and a thread of each process watches which
-    processes are still connected. When one disappears without having ended, the next
-    collective (or the next chunk, or solver step) raises :class:`ProcessLost` naming it;
-    a process stuck elsewhere is ended after :data:`LOST_GRACE` seconds with the same one
-    line. Without this JAX's coordination service aborts the survivors (SIGABRT, a C++
-    stack trace), 0.2 s after process 0 dies or 100 s after another does.
+    still reach it when process 0 itself dies), and a thread of each process beats a
+    counter in the job's key-value store and watches the others' (:func:`_watch`). When
+    one stops without having ended, the next collective (or the next chunk, solver step
+    or solve round) raises :class:`ProcessLost` naming it; a process stuck elsewhere is
+    ended after :data:`LOST_GRACE` seconds with the same one line. Without this JAX's
+    coordination service aborts the survivors (SIGABRT, a C++ stack trace), 0.2 s after
+    process 0 dies or 100 s after another does.
     """
     if jax.distributed.is_initialized() or _JOB.get("client") is not None:
         return True
@@ -321,21 +326,45 @@ def _join(launch: Launch) -> None:
         jax.distributed.initialize(launch.coordinator, launch.num_processes,
                                    launch.process_id, local_device_ids=launch.local_device_ids)
         return
+    try:
+        from jax._src.xla_bridge import backends_are_initialized
+    except ImportError:  # pragma: no cover - another JAX
+        def backends_are_initialized():
+            return False
+    if backends_are_initialized():
+        raise RuntimeError("difstar init_distributed: JAX's devices were used before the "
+                           "job was joined; call it first (before jax.devices(), any array "
+                           "or computation), as jax.distributed.initialize requires.")
     env = os.environ
     beat = _whole(env, ENV_HEARTBEAT) or 100
     wait = _whole(env, ENV_JOIN_TIMEOUT) or 300
     n, me = launch.num_processes, launch.process_id
+    try:
+        # a Python error callback, though jaxlib cannot hand it the error (the status
+        # does not convert): with it a failed connect raises here, without it the
+        # default callback aborts the process with a C++ stack trace
+        client = make_client(launch.coordinator, me, init_timeout=wait, heartbeat_timeout=beat,
+                             use_compression=True, shutdown_on_destruction=False,
+                             missed_heartbeat_callback=_agent_error)
+    except TypeError:  # another jaxlib: JAX's own join, its own failures
+        jax.distributed.initialize(launch.coordinator, n, me,
+                                   local_device_ids=launch.local_device_ids)
+        return
     helper = None
     if me == 0:
+        import select
+
         port = launch.coordinator.rsplit(":", 1)[1]
         bind = env.get("JAX_COORDINATOR_BIND_ADDRESS", f"[::]:{port}")
         helper = subprocess.Popen(
             [sys.executable, "-c", _COORDINATOR, bind, str(n), str(beat),
              str(COORDINATOR_LINGER)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL, text=True, start_new_session=True)
-        said = helper.stdout.readline().strip()
+        ready, _, _ = select.select([helper.stdout], [], [], 120.0)
+        said = helper.stdout.readline().strip() if ready else ""
         helper.stdout.close()
         if said != "ready":
+            helper.kill()
             helper.wait()
             raise InputError(f"JAX_COORDINATOR_ADDRESS {launch.coordinator}: process 0 cannot "
                              f"serve the job's coordinator on {bind} "
@@ -349,27 +378,36 @@ def _join(launch: Launch) -> None:
             except (AttributeError, ValueError):
                 pass
     try:
-        client = make_client(launch.coordinator, me, init_timeout=wait, heartbeat_timeout=beat,
-                             use_compression=True, shutdown_on_destruction=False)
         state.coordinator_address = launch.coordinator
         state.process_id, state.num_processes = me, n
         state.client = client
         client.connect()
-    except Exception as exc:
+    except Exception:
         state.client = None
         if helper is not None:
             helper.kill()
+        try:  # never destroyed: its destructor would log a page about its error state
+            import ctypes
+
+            ctypes.pythonapi.Py_IncRef(ctypes.py_object(client))
+        except Exception:
+            pass
         raise InputError(
             f"JAX_COORDINATOR_ADDRESS {launch.coordinator}: process {me} of {n} could not join "
-            f"the job in {wait} s ({' '.join(str(exc).split())[:200]}); start every process "
-            f"(ids 0 … {n - 1}) with the same address and count ({ENV_JOIN_TIMEOUT} sets "
-            "the wait).") from None
+            f"the job within {wait} s; start every process (ids 0 … {n - 1}) with the same "
+            f"address and JAX_NUM_PROCESSES, process 0 on that host ({ENV_JOIN_TIMEOUT} "
+            "sets the wait).") from None
     # JAX's preemption service is left off: it swallows SIGTERM (a scheduler's or
     # timeout's stop would be ignored) and difstar has no preemption sync points
     _JOB.update(launch=launch, client=client, helper=helper, lost=None, reported=False,
-                ending=False)
-    threading.Thread(target=_watch, name="difstar-watch", daemon=True).start()
+                ending=False, beating=True, lock=threading.Lock())
+    _JOB["watch"] = threading.Thread(target=_watch, name="difstar-watch", daemon=True)
+    _JOB["watch"].start()
     atexit.register(_at_exit)  # runs before JAX's own clean-up (registered earlier)
+
+
+def _agent_error(*args) -> None:
+    """The coordination client's error callback (see :func:`_join`; never reached)."""
 
 
 def _beats(client) -> dict[int, str]:
@@ -438,7 +476,10 @@ def _watch() -> None:
         time.sleep(WATCH_EVERY)
         count += 1
         try:
-            client.key_value_set(f"difstar/beat/{me}", str(count), allow_overwrite=True)
+            with job["lock"]:  # never after this process's "exit" (see _at_exit)
+                if job["beating"]:
+                    client.key_value_set(f"difstar/beat/{me}", str(count),
+                                         allow_overwrite=True)
             beats = _beats(client)
         except Exception:  # the coordination service is gone with process 0's host
             if not job["ending"]:
@@ -486,6 +527,14 @@ def _collective(fn, *args):
         return fn(*args)
     except Exception:
         job["suspect"] = True
+        launch = job["launch"]
+        try:
+            early = [p for p, v in _beats(job["client"]).items()
+                     if v == "exit" and p != launch.process_id]
+        except Exception:
+            early = []
+        if early:  # it ended (with an error of its own) while this one waited on it
+            _lose(_lost_message(min(early), launch.num_processes, True))
         t_end = time.monotonic() + SUSPECT_AFTER + 3.0
         while not job.get("lost") and time.monotonic() < t_end:
             time.sleep(0.05)
@@ -513,10 +562,12 @@ def _at_exit() -> None:
     me, n = launch.process_id, launch.num_processes
     if me != 0:
         job["ending"] = True
-    try:
-        client.key_value_set(f"difstar/beat/{me}", "exit", allow_overwrite=True)
-    except Exception:
-        pass
+    with job["lock"]:
+        job["beating"] = False
+        try:
+            client.key_value_set(f"difstar/beat/{me}", "exit", allow_overwrite=True)
+        except Exception:
+            pass
     if me == 0:
         while not job.get("lost"):
             try:
@@ -531,6 +582,12 @@ def _at_exit() -> None:
                              "ended (after every result was gathered)\n")
             job["lost"] = None
         time.sleep(0.5)  # the others' disconnection, sent right after their word
+    # the watchdog must be out of the client's calls before the interpreter ends: a daemon
+    # thread inside a C++ call at finalisation is unwound by force, and the C++ runtime
+    # aborts ("FATAL: exception not rethrown")
+    watch = job.get("watch")
+    if watch is not None and watch is not threading.current_thread():
+        watch.join(timeout=5.0)
     try:
         jax.distributed.shutdown()
     except Exception:
@@ -547,8 +604,14 @@ def _at_exit() -> None:
 
 def writes_output() -> bool:
     """Whether this process writes the job's outputs: process 0 of a multi-process job
-    (every process holds every result, one writes them), the only process otherwise."""
-    return jax.process_index() == 0
+    (every process holds every result, one writes them), the only process otherwise.
+    Starts nothing (no JAX backend), so an output module may ask it at any time."""
+    launch = _JOB.get("launch")
+    if launch is not None:
+        return launch.process_id == 0
+    if jax.distributed.is_initialized():  # joined by JAX itself (another JAX version)
+        return jax.process_index() == 0
+    return True
 
 
 def device_count(devices=None, *, flag: str = "--devices") -> int:
@@ -626,7 +689,7 @@ def plan_lines(n_items: int | None, n_devices: int, *, chunk=None, what: str = "
     size, k = plan.chunk, plan.per_device
     pad = plan.chunks * size - n_items
     sizing = ("" if chunk is not None else
-              " (without --chunk the run may split it further to fit the devices' memory)")
+              " (the run may split it further to fit the devices' memory)")
     lines.append(f"work: {n_items} {what} in {plan.chunks} chunk(s) of {size} ({k} per "
                  f"device), {pad} padding item(s){sizing}")
     for p in range(n_proc):
@@ -948,8 +1011,7 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
     if _leading(args) != n_items:
         raise ValueError("difstar solve_many: u0 and args need the same number of fits.")
     if dry_run():
-        _print_plan(n_items, device_count(devices), chunk=chunk,
-                    what="fits (each solve round)")
+        _print_plan(n_items, device_count(devices), chunk=chunk, what="fits")
     mesh = device_mesh(devices)
     devs = list(mesh.devices.flat)
     nd = len(devs)
