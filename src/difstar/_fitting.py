@@ -248,7 +248,13 @@ class Light:
         if source != "flat":
             t = float(source)
             h, c, k = 6.62607015e-34, 2.99792458e8, 1.380649e-23
-            w = w * lam ** -4 / np.expm1(h * c / (lam * k * t))  # photons ∝ B_λ λ
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                w = w * lam ** -4 / np.expm1(h * c / (lam * k * t))  # photons ∝ B_λ λ
+            if not (np.all(np.isfinite(w)) and w.sum() > 0):
+                raise FitInputError(f"Light.band: source: a blackbody of {t:g} K gives no "
+                                    f"light over the band [{lo}, {hi}] m (the weights "
+                                    "underflow); give a temperature in kelvin (e.g. 5000) "
+                                    "or 'flat'.")
         w = w / w.sum()
         return Light(tuple(lam.tolist()), tuple(w.tolist()))
 
@@ -2763,13 +2769,9 @@ def load_manifest(path):
             else:
                 light = Light.monochromatic(li["wavelength"])
     except FitInputError as e:
+        if str(e).startswith("Light.band: source"):
+            at = "light/source"
         raise FitInputError(f"{src}: field {at}: {e}") from None
-    wts = np.asarray(light.weights, float)
-    if not (np.all(np.isfinite(wts)) and np.all(wts >= 0) and wts.sum() > 0):
-        raise FitInputError(f"{src}: field light/source: a blackbody of "
-                            f"{li.get('source')} K gives no light over the band "
-                            f"{li['band']} m (the weights are not finite); give a "
-                            "temperature in kelvin (e.g. 5000) or 'flat'.")
     det = man.get("detector", {})
     bg = _border_background(fd)
     x0, y0 = _brightest_offset(fd, bg)
