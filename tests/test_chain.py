@@ -34,6 +34,7 @@ def test_energy_conserved_sum_image_equals_sum_object():
     g = pred.geometry
     b = difstar.geometric_image(scene.sources, magnification=g.magnification,
                                 pixel_pitch=camera.sensor.pixel_pitch, shape=(128, 128))
+    b = b * difstar.irradiance_scale(camera, scene)  # the light the pupil passes
     psf_sum = np.asarray(pred.psf).sum(axis=(1, 2))
     np.testing.assert_allclose(np.asarray(pred.image).sum(axis=(1, 2)),
                                np.asarray(b).sum(axis=(1, 2)) * psf_sum, rtol=1e-12)
@@ -43,7 +44,7 @@ def test_energy_conserved_sum_image_equals_sum_object():
     deficit_big = 1 - np.asarray(p1024).sum(axis=(1, 2))
     assert np.all(deficit_big > 0) and np.all(deficit_big < deficit / 4), (deficit, deficit_big)
     # and the object's image area equals π (|M| r / p)² (area coverage is exact-ish)
-    area = float(b[1].sum())
+    area = float(b[1].sum() / difstar.irradiance_scale(camera, scene))
     expect = np.pi * (abs(float(g.magnification)) * 0.5e-3 / camera.sensor.pixel_pitch) ** 2
     assert area == pytest.approx(expect, rel=1e-3)
 

@@ -96,6 +96,7 @@ from ._design import (
 )
 from ._examples import paper_camera as paper_camera
 from ._examples import paper_grid as paper_grid
+from ._examples import paper_sensitivities as paper_sensitivities
 from ._fitting import FitData as FitData
 from ._fitting import FitInputError as FitInputError
 from ._fitting import FitResult as FitResult
@@ -121,6 +122,13 @@ from ._fitting import spike_angles as spike_angles
 from ._geometry import Geometry as Geometry
 from ._geometry import camera_geometry as camera_geometry
 from ._image import DiscSource as DiscSource
+from ._image import PointSource as PointSource
+from ._radiometry import REFERENCE_SOLID_ANGLE as REFERENCE_SOLID_ANGLE
+from ._radiometry import Radiometry as Radiometry
+from ._radiometry import irradiance_scale as irradiance_scale
+from ._radiometry import phi0_from_configuration as phi0_from_configuration
+from ._radiometry import pupil_area as pupil_area
+from ._radiometry import radiometry as radiometry
 from ._image import geometric_image as geometric_image
 from ._metrics import (
     grayscale as grayscale,
@@ -201,6 +209,7 @@ from ._spectrum import (
 from ._spectrum import (
     choose_wavelengths as choose_wavelengths,
 )
+from ._spectrum import dense_weights as dense_weights
 from ._spectrum import (
     error_table as error_table,
 )
@@ -222,5 +231,6 @@ from ._zernike import (
 from ._zernike import (
     noll_to_nm as noll_to_nm,
 )
+from ._zernike import zernike_noll as zernike_noll
 
 __version__ = "0.1.0"

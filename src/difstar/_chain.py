@@ -19,6 +19,7 @@ from ._fft_size import fast_length
 from ._geometry import Geometry
 from ._grid_psf import intensity_from_atf
 from ._image import DiscSource as DiscSource
+from ._image import PointSource as PointSource
 from ._image import convolve, geometric_image, image_spectrum
 from ._model import (
     METHODS as METHODS,
@@ -48,6 +49,7 @@ from ._model import (
     geometry_of as geometry_of,
 )
 from ._otf import otf
+from ._radiometry import radiometry
 from ._psf_engine import SamplingError as SamplingError
 from ._sampling_rules import (
     check_sampling as check_sampling,
@@ -101,8 +103,25 @@ def pixel_centres(fine, n: int, q: int):
     return fine[..., off::q, off::q][..., :n, :n]
 
 
+def sources_image(camera: Camera, scene: Scene, g: Geometry, shape) -> Array:
+    """The geometric image of the scene's sources on a centred ``shape`` pixel window,
+    with the light the pupil passes (:func:`difstar.radiometry`): the one place where
+    the sources become image irradiance."""
+    rad = radiometry(camera, scene, g)
+    return geometric_image(scene.sources, magnification=g.magnification,
+                           pixel_pitch=camera.sensor.pixel_pitch, shape=shape,
+                           extended_scale=rad.extended_scale, point_scale=rad.point_scale)
+
+
 def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     """Predict the PSFs, the linear image, the RAW mosaic and the sRGB image.
+
+    Radiometry: a disc of radiance L gives the image irradiance L · A_exit / z_R² (the
+    exit pupil's open area over its distance to the sensor squared), a point source of
+    intensity I the power I · A_entrance / r_ent²; the linear image is that over the
+    reference pupil's solid angle (circular f/22), and the sensor sees it × t / φ0. So
+    opening from f/22 to f/8 at the same exposure time multiplies the unsaturated image
+    by (22/8)², and focusing closer dims it as (z_∞ / z_R)².
 
     The sensor integrates the optical image over each pixel exactly once: the geometric
     image is each source's area coverage of the pixels (the object integrated over each
@@ -126,8 +145,7 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     n = grid.n
     w = grid.source_window
     if 0 < w < n:  # the sources' image on its window
-        bw = geometric_image(scene.sources, magnification=g.magnification,
-                             pixel_pitch=sen.pixel_pitch, shape=(w, w))
+        bw = sources_image(camera, scene, g, (w, w))
         if _pruned.applies(grid):  # only the work the crop needs; equal to the below
             psfs, image = _pruned.image(camera.lens.pupil, sen.wavelengths, g, bw,
                                         pixel_pitch=sen.pixel_pitch, grid=grid)
@@ -135,8 +153,7 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
         b = jax.lax.dynamic_update_slice(jnp.zeros((3, n, n), bw.dtype), bw,
                                          (0, n // 2 - w // 2, n // 2 - w // 2))
     else:
-        b = geometric_image(scene.sources, magnification=g.magnification,
-                            pixel_pitch=sen.pixel_pitch, shape=(n, n))
+        b = sources_image(camera, scene, g, (n, n))
     b_ft = image_spectrum(b)  # once, shared by the three channels' convolutions
 
     def one(wavelength, b_ft_c):
@@ -159,8 +176,7 @@ def _exact_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
             f"{type(pupil).__name__}. Use method='fft'."
         )
     w = grid.source_window
-    b = geometric_image(scene.sources, magnification=g.magnification,
-                        pixel_pitch=camera.sensor.pixel_pitch, shape=(w, w))
+    b = sources_image(camera, scene, g, (w, w))
     return focused_image(pupil.vertices, b, camera.sensor.wavelengths, z_image=g.z_exit_pupil,
                          pixel_pitch=camera.sensor.pixel_pitch, crop=grid.crop,
                          oversample=1)  # at the pixel centres (see simulate)
@@ -178,8 +194,7 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
     w = grid.source_window
     h, wc = grid.crop
     kh, kw = engine_psf_shape(grid.crop, w)
-    b = geometric_image(scene.sources, magnification=g.magnification,
-                        pixel_pitch=sen.pixel_pitch, shape=(w, w))
+    b = sources_image(camera, scene, g, (w, w))
     nh, nw = fast_length(kh + w - 1), fast_length(kw + w - 1)
     _, _, r0, c0 = _conv_offsets(grid.crop, (w, w))
     b_ft = window_rfft2(b, (nh, nw))
@@ -209,7 +224,8 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
 
 def _finish(camera: Camera, scene: Scene, grid: Grid, g: Geometry, psfs, image) -> Prediction:
     sen = camera.sensor
-    image = image + scene.background[:, None, None]
+    # a uniform radiance through the pupil (the PSF sums to 1: it stays uniform)
+    image = image + radiometry(camera, scene, g).extended_scale * scene.background[:, None, None]
     # stored apart (see _xla.stored): ζ is an output and the mosaic's input; otherwise the
     # mosaic re-evaluates it and its square roots and exponentials are stored as arrays
     zeta = stored(lambda a: sensor(a[0], exposure_time=a[1], phi0=a[2], response=a[3]),
@@ -225,5 +241,6 @@ def _finish(camera: Camera, scene: Scene, grid: Grid, g: Geometry, psfs, image) 
 
 __all__ = [
     "Camera", "Lens", "Sensor", "Scene", "Grid", "Prediction", "DiscSource",
+    "PointSource", "sources_image",
     "simulate", "geometry_of", "check_sampling", "needs_defocus", "SamplingError",
 ]

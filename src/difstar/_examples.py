@@ -10,7 +10,12 @@ Values the paper does not print are assumptions, stated here:
   front of the sensor at infinity focus), circumradius f / (2 N);
 - blade rotation 0 (first vertex on +x);
 - φ0 and the response curves are chosen so the source's core saturates as in the
-  paper's Fig. 6 while the spikes stay in the linear range, with R and B at half the
+  paper's Fig. 6 while the spikes stay in the linear range; like the paper's (which
+  characterises φ0 at its one aperture, "specific for a given source and sensor
+  configuration"), ``PAPER["phi0"]`` is stated per configuration, in seconds at that
+  configuration's aperture and focus, and :func:`paper_camera` converts it once to the
+  reference-pupil φ0 the Sensor takes (:func:`difstar.phi0_from_configuration`), so
+  both examples render exactly as they did before the image followed the f-number; with R and B at half the
   green response (φ0 ∝ the white balance) so the paper's white balance [2, 1, 2] makes
   the white source neutral in camera RGB, and the toe of R and B at half the green one
   (toe ∝ 1/white balance: the same toe in white-balanced exposure), so the source stays
@@ -29,9 +34,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import equinox as eqx
+
 from ._chain import Camera, Grid, Lens, Scene, Sensor
 from ._image import DiscSource
 from ._pupil import RegularPolygon
+from ._radiometry import phi0_from_configuration
 from ._sensor import Response
 
 PAPER_CONFIGS = {
@@ -81,7 +89,12 @@ def paper_sensitivities():
 
 
 def paper_camera(config: str = "focused", *, rotation: float = 0.0) -> tuple[Camera, Scene]:
-    """The paper's camera and scene in configuration ``"focused"`` or ``"defocused"``."""
+    """The paper's camera and scene in configuration ``"focused"`` or ``"defocused"``.
+
+    The sensor's φ0 is ``PAPER["phi0"]`` (seconds, characterised at this configuration)
+    converted to the reference pupil for this configuration's aperture and focus; the
+    camera then follows a change of f-number or focus as a real one would (its φ0 is
+    then that of the configuration it came from)."""
     if config not in PAPER_CONFIGS:
         raise ValueError(f"config must be one of {tuple(PAPER_CONFIGS)}; got {config!r}.")
     c = PAPER_CONFIGS[config]
@@ -110,7 +123,9 @@ def paper_camera(config: str = "focused", *, rotation: float = 0.0) -> tuple[Cam
         sources=(DiscSource(PAPER["source_diameter"] / 2),),
         exposure_time=c["exposure_time"],
     )
-    return Camera(lens, sensor), scene
+    camera = Camera(lens, sensor)
+    phi0 = phi0_from_configuration(PAPER["phi0"], camera, scene)
+    return eqx.tree_at(lambda c: c.sensor.phi0, camera, phi0), scene
 
 
 def paper_grid(config: str = "focused", *, crop=None, n=None) -> Grid:

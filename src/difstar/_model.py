@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from ._atf import SCALINGS
 from ._custom_types import Array, Float
 from ._geometry import Geometry, camera_geometry
-from ._image import DiscSource
+from ._image import SOURCE_TYPES, DiscSource, PointSource
 from ._psf_engine import PSFPlan
 from ._pupil import AbstractPupil
 from ._sensor import Response
@@ -83,7 +83,14 @@ class Sensor(eqx.Module):
         spectrum × the channel's sensitivity × the quadrature weight, e.g. from
         :func:`difstar.choose_wavelengths`); normalised per channel, so φ0 and the
         response curves keep their per-channel meaning. ``None`` for trichromatic.
-    phi0: (3,) reference exposure per channel, seconds.
+    phi0: (3,) reference exposure per channel: the exposure time, in seconds, at which a
+        source of unit radiance seen through the reference pupil (a circular f/22
+        focused at infinity, solid angle π/(4·22²) sr) reaches the response curve's
+        knee; equivalently the knee's radiant exposure divided by that solid angle. It
+        is the camera's, and holds at every aperture, focus and exposure time: the
+        image scales with the exit pupil's area over its distance squared (see
+        :func:`difstar.irradiance_scale`, :func:`difstar.phi0_from_configuration` to
+        convert a φ0 characterised at one configuration).
     response: response-curve parameters. white_balance: (3,) gains R, G, B.
     colour_matrix: (3, 3) camera RGB → linear sRGB.
     """
@@ -153,13 +160,14 @@ class Camera(eqx.Module):
 class Scene(eqx.Module):
     """What is photographed and for how long.
 
-    object_distance: sensor to object plane, metres. sources: discs in the object plane.
-    exposure_time: t, seconds. background: (3,) uniform light added to the image, in
-    the sources' relative radiance units.
+    object_distance: sensor to object plane, metres. sources: :class:`DiscSource` and
+    :class:`PointSource` in the object plane, in any mix. exposure_time: t, seconds.
+    background: (3,) a uniform radiance filling the field (the discs' radiance unit),
+    imaged through the pupil like them.
     """
 
     object_distance: Float[Array, ""]
-    sources: tuple[DiscSource, ...]
+    sources: tuple[DiscSource | PointSource, ...]
     exposure_time: Float[Array, ""]
     background: Float[Array, 3]
 
@@ -167,7 +175,12 @@ class Scene(eqx.Module):
         self.object_distance = jnp.asarray(object_distance, dtype=float)
         self.sources = tuple(sources)
         if not self.sources:
-            raise ValueError("Scene.sources is empty; give at least one DiscSource.")
+            raise ValueError("Scene.sources is empty; give at least one DiscSource or "
+                             "PointSource.")
+        for i, src in enumerate(self.sources):
+            if not isinstance(src, SOURCE_TYPES):
+                raise TypeError(f"Scene.sources[{i}] must be a DiscSource or a PointSource; "
+                                f"got {type(src).__name__}.")
         self.exposure_time = jnp.asarray(exposure_time, dtype=float)
         self.background = jnp.broadcast_to(jnp.asarray(background, dtype=float), (3,))
 
@@ -241,7 +254,8 @@ class Prediction(eqx.Module):
     psf: (3, h, w) per-channel PSF on the crop, normalised so that it sums to 1 over
         the whole plane (Parseval: by the pupil's area, not by the grid's sum, so the
         normalisation does not depend on the grid).
-    image: (3, h, w) C, the linear image of the normalised object.
+    image: (3, h, w) C, the linear image: the pixels' mean irradiance over the reference
+        pupil's solid angle, in the sources' radiance unit (the sensor sees C t / φ0).
     zeta: (3, h, w) normalised pixel values per channel before the CFA.
     cfa: (h, w) the RAW mosaic ζ in [0, 1].
     srgb: (3, h, w) the rendered sRGB image in [0, 1] (None when ``raw_only``).
