@@ -183,3 +183,109 @@ def test_synthesize_is_reproducible_and_checks_input():
         synthesize_capture(-z, rng=np.random.default_rng(3), **kw)
     with pytest.raises(ValueError):
         synthesize_capture(z, rng=np.random.default_rng(3), **{**kw, "gain_e_per_dn": 0.0})
+
+
+# ------------------------------------------------ what `difstar predict` writes (issue 34)
+
+#: the paper's camera RGB → linear sRGB matrix (rows sum to 1 within 2e-4) and gains
+WB = np.array([2.0, 1.0, 2.0])
+
+
+def _paper_matrix():
+    from difstar._examples import PAPER_COLOUR_MATRIX
+
+    return np.asarray(PAPER_COLOUR_MATRIX, float)
+
+
+def test_dng_colour_matrix_of_srgb_itself_is_colour_science_xyz_to_srgb():
+    """A camera whose RGB is linear sRGB (identity matrix, unit gains): ColorMatrix1 must
+    be colour-science's XYZ → sRGB matrix, which maps D65 white to (1, 1, 1) (to the 4
+    digits IEC 61966-2-1 gives it)."""
+    import colour
+
+    from difstar.io._dng import dng_colour_matrix
+
+    x2s = np.asarray(colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB)
+    d65 = colour.xy_to_XYZ(colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"])
+    np.testing.assert_allclose(x2s @ d65, 1.0, atol=2e-4)
+    np.testing.assert_allclose(dng_colour_matrix(np.eye(3), np.ones(3)), x2s, rtol=2e-4)
+    # with gains, D65 white gives the camera neutral 1/wb (largest component 1): the
+    # AsShotNeutral that write_dng stores for the same gains
+    neutral = dng_colour_matrix(_paper_matrix(), WB) @ d65
+    np.testing.assert_allclose(neutral, (1 / WB) / np.max(1 / WB), rtol=5e-4)  # rows: 2e-4
+    with pytest.raises(DngWriteError, match="singular"):
+        dng_colour_matrix(np.ones((3, 3)), WB)
+
+
+def _smooth_zeta(h=96, w=128):
+    """Normalised values ζ that vary slowly (periods ≥ 3.7 pixels × 2π) and stay well
+    below saturation: any two demosaics agree there to second order."""
+    y, x = np.mgrid[0:h, 0:w] / 64.0
+    return np.stack([0.2 + 0.15 * np.sin(1.3 * x + y), 0.3 + 0.1 * np.cos(1.7 * y),
+                     0.15 + 0.1 * np.sin(x + 0.5 * y)])
+
+
+@pytest.mark.parametrize("pattern", PATTERNS)
+def test_predicted_dng_develops_in_libraw_as_difstar_renders(tmp_path, pattern):
+    """write_raw_dng (what `predict` writes as raw.dng): LibRaw reads back the layout,
+    levels, values and white balance written, and its development (camera white balance,
+    the embedded colour matrix, sRGB curve, no auto-brightening, 16 bits) equals difstar's
+    render_srgb of the same mosaic: bilinear against LibRaw's LINEAR, Malvar 2004 against
+    AHD.
+
+    Tolerance 2e-3 of the encoded sRGB range, away from a 4-pixel border (LibRaw fills its
+    border differently). Measured: 4.2e-4 (bilinear/LINEAR), 6.8e-4 (Malvar/AHD). What
+    remains: LibRaw's 16-bit integer pipeline (1.5e-5 linear, up to 2e-4 encoded in the
+    steep dark part of the curve), its sRGB curve solved for continuity from (1/2.4,
+    12.92) rather than IEC 61966-2-1's constants, its normalisation of the matrix rows
+    (2e-4 for this matrix), and the demosaics' second-order differences."""
+    import jax.numpy as jnp
+    import rawpy
+
+    from difstar._cfa import mosaic
+    from difstar._colour import render_srgb
+    from difstar.io._output import write_raw_dng
+
+    zeta = _smooth_zeta()
+    cfa = np.asarray(mosaic(jnp.asarray(zeta), pattern))
+    black, white = 1024, 60000
+    path = tmp_path / "raw.dng"
+    write_raw_dng(path, cfa, pattern=pattern, white_balance=WB, colour_matrix=_paper_matrix(),
+                  black_level=black, white_level=white, exposure_time=0.5)
+    want_raw = (black + np.round(cfa * (white - black))).astype(np.uint16)
+    with rawpy.imread(str(path)) as r:
+        assert np.array_equal(r.raw_image_visible, want_raw)
+        desc = r.color_desc.decode()
+        assert "".join(desc[i] for i in r.raw_pattern.ravel()) == pattern
+        assert list(r.black_level_per_channel) == [black] * 4
+        assert r.white_level == white
+        cam_wb = np.asarray(r.camera_whitebalance[:3])
+        np.testing.assert_allclose(cam_wb / cam_wb[1], WB, rtol=1e-6)
+        developed = {}
+        for alg in ("LINEAR", "AHD"):
+            img = r.postprocess(use_camera_wb=True, no_auto_bright=True, gamma=(2.4, 12.92),
+                                output_bps=16, user_flip=0,
+                                demosaic_algorithm=getattr(rawpy.DemosaicAlgorithm, alg))
+            developed[alg] = np.moveaxis(img.astype(float) / 65535, -1, 0)
+    quantised = (want_raw.astype(float) - black) / (white - black)
+    for method, alg in (("bilinear", "LINEAR"), ("malvar2004", "AHD")):
+        ours = np.asarray(render_srgb(jnp.asarray(quantised), pattern, white_balance=WB,
+                                      matrix=_paper_matrix(), demosaic_method=method))
+        diff = (developed[alg] - ours)[:, 4:-4, 4:-4]
+        assert np.abs(diff).max() < 2e-3, (method, np.abs(diff).max())
+
+
+def test_small_dng_is_written_when_asked(tmp_path):
+    """min_side=2 writes a 16 × 16 DNG (LibRaw refuses below 22, so predict's smallest
+    crops still get their raw.dng); tifffile reads its values and CFA layout back."""
+    import tifffile
+
+    raw = _raw((16, 16))
+    with pytest.raises(DngWriteError, match="≥ 22"):
+        write_dng(tmp_path / "a.dng", raw, pattern="GBRG", black_level=0, white_level=16383)
+    path = write_dng(tmp_path / "a.dng", raw, pattern="GBRG", black_level=0,
+                     white_level=16383, min_side=2)
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        assert np.array_equal(page.asarray(), raw)
+        assert bytes(page.tags["CFAPattern"].value) == bytes((1, 2, 0, 1))

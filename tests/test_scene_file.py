@@ -72,10 +72,10 @@ def test_spectral_sensor_loads_and_roundtrips():
 
 
 def _capture(monkeypatch) -> dict:
-    """The predicted float arrays that ``predict`` writes to raw.tiff, srgb.png and
+    """The predicted float arrays that ``predict`` writes to raw.dng, srgb.png and
     psf_log.png (the files themselves are quantised)."""
     got = {}
-    raw, png, psf_log = _output.write_tiff_raw, _output.write_png_srgb, cli.write_psf_png
+    raw, png, psf_log = _output.write_raw_dng, _output.write_png_srgb, cli.write_psf_png
 
     def tiff(path, cfa, **kw):
         got["cfa"] = np.array(cfa, dtype=float)
@@ -90,7 +90,7 @@ def _capture(monkeypatch) -> dict:
         got["psf"] = np.array(psf, dtype=float)
         return psf_log(path, psf)
 
-    monkeypatch.setattr(_output, "write_tiff_raw", tiff)
+    monkeypatch.setattr(_output, "write_raw_dng", tiff)
     monkeypatch.setattr(_output, "write_png_srgb", srgb)
     monkeypatch.setattr(cli, "write_psf_png", psf_png)
     return got
@@ -131,11 +131,11 @@ CHILD = textwrap.dedent('''
     from difstar.io import _output
 
     got = {}
-    raw = _output.write_tiff_raw
+    raw = _output.write_raw_dng
     def tiff(path, cfa, **kw):
         got["cfa"] = np.array(cfa, dtype=float)
         return raw(path, cfa, **kw)
-    _output.write_tiff_raw = tiff
+    _output.write_raw_dng = tiff
     keep = cli.write_psf_png
     def psf_png(path, psf):
         got["psf"] = np.array(psf, dtype=float)

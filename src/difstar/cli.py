@@ -3,7 +3,6 @@
     difstar predict SCENE.json --out DIR      predict RAW + sRGB for a scene file
     difstar predict --example paper-focused --out DIR
     difstar example NAME [--crop H W]         print a built-in scene as JSON
-    difstar bench ...                         speed against error (BENCHMARKS.md)
     difstar synth ... / difstar fit ...       synthetic captures and fitting
     difstar fit-image MANIFEST --out DIR      fit a PSF model to a star image
 """
@@ -61,7 +60,8 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
         output_dir,
         write_json,
         write_png_srgb,
-        write_tiff_raw,
+        write_raw_dng,
+        write_tiff_srgb16,
     )
     from difstar.io._scene import scene_from_dict
 
@@ -148,13 +148,23 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
             "jax": {"version": jax.__version__, "backend": jax.default_backend(),
                     "x64": bool(jax.config.jax_enable_x64)},
         }
+        sen = camera.sensor
         if pred.srgb is not None:
             write_png_srgb(tmp / "srgb.png", pred.srgb)
-        write_tiff_raw(tmp / "raw.tiff", pred.cfa, pattern=camera.sensor.pattern)
+            write_tiff_srgb16(tmp / "srgb16.tif", pred.srgb)
+        write_raw_dng(tmp / "raw.dng", pred.cfa, pattern=sen.pattern,
+                      white_balance=np.asarray(sen.white_balance),
+                      colour_matrix=np.asarray(sen.colour_matrix),
+                      exposure_time=float(scene.exposure_time),
+                      focal_length=float(camera.lens.focal_length))
         write_psf_png(tmp / "psf_log.png", np.asarray(pred.psf))
         write_json(tmp / "scene.json", doc)
         write_json(tmp / "derived.json", derived)
-    _log(f"difstar: wrote {out}/ (srgb.png, raw.tiff, psf_log.png, scene.json, derived.json)")
+        written = sorted(p.name for p in tmp.iterdir() if not p.name.startswith("."))
+    if min(grid.crop) < 22:
+        _log(f"difstar: note: raw.dng is {grid.crop[0]} × {grid.crop[1]} pixels; LibRaw "
+             "(rawpy, darktable, RawTherapee) opens only 22 × 22 and larger")
+    _log(f"difstar: wrote {out}/ ({', '.join(written)})")
     return derived
 
 
@@ -163,15 +173,33 @@ class InternalError(RuntimeError):
 
 
 def write_psf_png(path, psf) -> None:
-    """The three PSFs on a log scale (1e-7 … peak) as one RGB picture."""
+    """The three channels' PSFs as a figure: log10 of the fraction of the channel's power
+    per pixel (the PSF sums to 1 over the plane), one panel per channel on one colour
+    scale from 10⁻⁷ × the highest peak to that peak, with a colour bar; axes in pixels
+    from the crop's centre (the optical axis)."""
     import numpy as np
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    from difstar.io._output import write_png_srgb
-
-    lo = 1e-7
-    peak = psf.max()
-    img = (np.log10(np.clip(psf, lo * peak, None) / peak) - np.log10(lo)) / -np.log10(lo)
-    write_png_srgb(path, img)
+    psf = np.asarray(psf, float)
+    hi = float(np.log10(psf.max())) if psf.max() > 0 else 0.0
+    lo = hi - 7.0
+    logp = np.log10(np.clip(psf, 10.0**lo, None))
+    h, w = psf.shape[-2:]
+    # pixel i of the crop sits i − size//2 pixels from the axis (the crop is centred)
+    extent = (-(w // 2) - 0.5, w - w // 2 - 0.5, h - h // 2 - 0.5, -(h // 2) - 0.5)
+    fig = Figure(figsize=(13.0, 4.4), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, 3, sharey=True)
+    for ax, c, name in zip(axes, logp, ("R", "G", "B")):
+        im = ax.imshow(c, cmap="magma", vmin=lo, vmax=hi, extent=extent,
+                       interpolation="antialiased")
+        ax.set_title(f"{name} channel PSF")
+        ax.set_xlabel("x (pixels from the axis)")
+    axes[0].set_ylabel("y (pixels from the axis, downwards)")
+    bar = fig.colorbar(im, ax=list(axes), shrink=0.9)
+    bar.set_label("log10(fraction of the channel's power per pixel)")
+    fig.savefig(path, format="png")
 
 
 def _cmd_predict(a) -> int:
@@ -184,6 +212,13 @@ def _cmd_predict(a) -> int:
     crop = None if a.crop is None else check_crop(a.crop, "--crop")
     inputs = [a.scene] if a.scene else []
     out = Path(a.out)
+    devices = None
+    if a.devices is not None or os.environ.get("DIFSTAR_DEVICES", "").strip():
+        # first of all: the job is joined before anything touches a device (the example
+        # and the scene below build JAX arrays), as jax.distributed requires
+        from difstar._batch import init_distributed
+
+        init_distributed()
     if a.example:
         doc = example_document(a.example)
         source = f"example:{a.example}"
@@ -191,11 +226,9 @@ def _cmd_predict(a) -> int:
         doc = read_json(a.scene, what="scene file")
         source = str(a.scene)
     check_output_free(out, overwrite=a.overwrite, inputs=inputs)
-    devices = None
     if a.devices is not None:
-        from difstar._batch import device_count, init_distributed
+        from difstar._batch import device_count
 
-        init_distributed()
         devices = device_count(a.devices)
     run_predict(doc, source=source, out=out, overwrite=a.overwrite, crop=crop, inputs=inputs,
                 devices=devices)
@@ -243,7 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--version", action="version", version=f"difstar {_version()}")
     sub = ap.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("predict", help="predict RAW mosaic + sRGB image for a scene",
+    p = sub.add_parser("predict", help="predict RAW mosaic (DNG) + sRGB image for a scene",
                        formatter_class=_Formatter)
     p.add_argument("scene", nargs="?", help="scene JSON (data_schemas/scene.schema.json)")
     p.add_argument("--example", choices=EXAMPLES, help="use a built-in scene instead of a file")
@@ -270,9 +303,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(func=_cmd_example)
 
-    for name, module in (("bench", "difstar._bench_cli"), ("synth", "difstar._fit_cli"),
-                         ("fit", "difstar._fit_cli"), ("design", "difstar._design_cli"),
-                         ("fit-image", "difstar._fit_image_cli")):
+    for name, module in (("synth", "difstar._fit_cli"), ("fit", "difstar._fit_cli"),
+                         ("design", "difstar._design_cli"), ("fit-image", "difstar._fit_image_cli")):
         try:
             mod = __import__(module, fromlist=["register"])
         except ImportError:

@@ -85,6 +85,7 @@ def write_dng(
     color_matrix=None,
     camera_model: str = "difstar synthetic",
     overwrite: bool = False,
+    min_side: int = _MIN_SIDE,
 ) -> Path:
     """Write a Bayer mosaic as a minimal valid DNG that LibRaw reads back exactly.
 
@@ -107,6 +108,9 @@ def write_dng(
     color_matrix : (3, 3) XYZ → camera RGB matrix under D65 (DNG ColorMatrix1, the same
         meaning as LibRaw's ``rgb_xyz_matrix``), or None for the identity.
     camera_model : UniqueCameraModel string.
+    min_side : the least height and width accepted: by default 22, the least LibRaw opens;
+        a smaller one (≥ 2) writes a valid DNG that LibRaw (rawpy, darktable, RawTherapee)
+        refuses but other readers open.
 
     Returns the path written.
     """
@@ -117,10 +121,12 @@ def write_dng(
     if raw.ndim != 2 or raw.dtype != np.uint16:
         raise DngWriteError(f"raw must be a 2-D uint16 array; got {raw.dtype} {raw.shape}")
     h, w = raw.shape
-    if h < _MIN_SIDE or w < _MIN_SIDE or h % 2 or w % 2:
+    side = max(2, int(min_side))
+    if h < side or w < side or h % 2 or w % 2:
         raise DngWriteError(
-            f"raw must have even height and width ≥ {_MIN_SIDE} (LibRaw rejects smaller "
-            f"images); got {raw.shape}"
+            f"raw must have even height and width ≥ {side}"
+            + (" (LibRaw rejects smaller images)" if side == _MIN_SIDE else "")
+            + f"; got {raw.shape}"
         )
     pattern = str(pattern).upper()
     if pattern not in BAYER_PATTERNS:
@@ -202,6 +208,40 @@ def write_dng(
             os.unlink(tmp)
         raise
     return path
+
+
+def dng_colour_matrix(colour_matrix, white_balance) -> np.ndarray:
+    """DNG ColorMatrix1 (XYZ → camera RGB under D65, LibRaw's ``rgb_xyz_matrix``) of a
+    camera whose white-balanced RGB difstar renders with ``colour_matrix``.
+
+    difstar renders linear sRGB = M · diag(wb) · camera RGB (M = ``colour_matrix``, wb the
+    R, G, B ``white_balance`` gains), and linear sRGB = X · CIE XYZ with X the XYZ → sRGB
+    matrix difstar uses everywhere (colour-science's, D65:
+    :func:`difstar._colour.xyz_to_srgb_linear_matrix`). So camera RGB = diag(1/wb) · M⁻¹ ·
+    X · XYZ: that matrix, scaled so that D65 white (CIE 1931 xy, Y = 1) gives a camera
+    neutral whose largest component is 1 (the DNG convention). Its neutral is then ∝ 1/wb,
+    the AsShotNeutral :func:`write_dng` stores for the same gains, so a DNG reader's white
+    balance and matrix give difstar's colours. Raw converters (LibRaw, Adobe) map the
+    camera neutral to white; difstar's own rendering does so too exactly when M's rows
+    sum to 1 (M · (1, 1, 1) = (1, 1, 1)), as colour matrices are normalised.
+    """
+    import colour  # noqa: PLC0415  (lazy: keep `import difstar` cheap)
+
+    from .._colour import xyz_to_srgb_linear_matrix
+
+    m = np.asarray(colour_matrix, float)
+    wb = np.ravel(np.asarray(white_balance, float))
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+        raise DngWriteError(f"colour_matrix must be a finite (3, 3) array; got shape {m.shape}")
+    if wb.shape != (3,) or not np.all(np.isfinite(wb)) or np.any(wb <= 0):
+        raise DngWriteError(f"white_balance must be 3 positive gains R, G, B; got {wb.tolist()}")
+    if abs(np.linalg.det(m)) < 1e-12 * max(np.abs(m).max(), 1e-300) ** 3:
+        raise DngWriteError(f"colour_matrix {m.tolist()} is singular: no camera RGB → sRGB "
+                            "mapping can be stored in a DNG; give an invertible matrix.")
+    cm = np.diag(1.0 / wb) @ np.linalg.inv(m) @ xyz_to_srgb_linear_matrix()
+    xy = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
+    neutral = cm @ np.asarray(colour.xy_to_XYZ(xy), float)
+    return cm / np.max(np.abs(neutral))
 
 
 def synthesize_capture(

@@ -26,6 +26,12 @@ The output policy (README, "Where difstar writes"):
   (:data:`DISPLACED`), then the temporary folder is renamed into place, then the old
   result is removed; a run killed between the two renames leaves a temporary folder that
   the next run puts back (the old result returns to its place).
+- In a job of several processes (``jax.distributed``; docs/sharding.md) only the writing
+  process (:func:`difstar._batch.writes_output`: process 0) checks and commits the
+  destination. The others compute the same results and write them into a temporary
+  folder of their own in the system's temporary folder (``tempfile.gettempdir()``,
+  named, marked and locked as above), which is removed at the end without being committed:
+  they never look at, create or replace the destination, so one result appears.
 - :func:`check_output_free` checks all of this, that the destination is writable and
   that the disk has room for what the command expects to write, before any computation.
   A disk that fills up while writing is reported naming the destination; nothing stays.
@@ -218,7 +224,11 @@ def check_output_free(dest: str | Path, *, overwrite: bool = False, inputs: Iter
     inside the destination). ``replaceable``: for a folder with no marker, a test each
     of its entries must pass for ``--overwrite`` to replace it (``synth``: a DNG difstar
     wrote under a capture's name); without it such a folder is never replaced.
-    ``expected_bytes``: about how much the command will write (the disk must have it)."""
+    ``expected_bytes``: about how much the command will write (the disk must have it).
+    A process of a multi-process job that does not write (:func:`_writes_output`) checks
+    nothing: the destination is the writing process's alone."""
+    if not _writes_output():
+        return
     dest = Path(os.path.abspath(dest))
     real = dest.resolve()
     cwd = Path.cwd().resolve()
@@ -377,6 +387,66 @@ def _signals_raise():
         sys.unraisablehook = old_hook
 
 
+def _writes_output() -> bool:
+    """Whether this process writes the outputs: :func:`difstar._batch.writes_output`
+    (process 0 of a multi-process job, or a process alone)."""
+    from .._batch import writes_output
+
+    return writes_output()
+
+
+def _marked_tmp(parent: Path, name: str, command: str):
+    """A fresh temporary folder ``parent/.NAME.difstar-tmp-TOKEN`` with its marker and
+    the marker's lock (the open file; None where locks are not available)."""
+    token = secrets.token_hex(8)
+    tmp = parent / f".{name}.difstar-tmp-{token}"
+    umask = os.umask(0)
+    os.umask(umask)
+    os.mkdir(tmp, 0o777 & ~umask)
+    lock = None
+    try:
+        # the lock first, then the marker's content: a run is never seen with a valid
+        # marker and a free lock while it lives
+        (tmp / MARKER).touch()
+        lock = _lock(tmp)
+        _write_marker(tmp, [], command, token)
+    except BaseException:
+        if lock is not None:
+            lock.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return tmp, token, lock
+
+
+@contextlib.contextmanager
+def _discarded_dir(dest: Path, command: str, what: str):
+    """A non-writing process's folder (see the module's docstring): in the system's
+    temporary folder, removed whatever happens; ``dest`` is never touched."""
+    parent = Path(tempfile.gettempdir())
+    with _signals_raise():
+        remove_stale(parent)  # those of this host's killed non-writers
+        try:
+            tmp, _, lock = _marked_tmp(parent, dest.name, command)
+        except OSError as exc:
+            raise OutputError(f"{what} {dest}: this process (not the one that writes) "
+                              f"cannot make its temporary folder in {parent} "
+                              f"({exc.strerror}); set TMPDIR to a writable folder.") from None
+        try:
+            yield tmp
+            _check_terminated()
+        except OSError as exc:
+            if exc.errno in _DISK_ERRORS:
+                raise OutputError(f"{what} {dest}: {exc.strerror} in this process's "
+                                  f"temporary folder {parent} (it is not the one that "
+                                  "writes); free some space there or set TMPDIR to "
+                                  "another folder.") from None
+            raise
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+            if lock is not None:
+                lock.close()
+
+
 @contextlib.contextmanager
 def output_dir(dest: str | Path, *, overwrite: bool = False, inputs: Iterable = (),
                replaceable: Callable[[Path], bool] | None = None, expected_bytes: int = 0,
@@ -385,7 +455,15 @@ def output_dir(dest: str | Path, *, overwrite: bool = False, inputs: Iterable = 
     ends without error (with the marker listing the files), remove it otherwise.
 
     Enter it before the computation: the destination is checked (and abandoned temporary
-    folders beside it removed) at once, and a refused or failed run leaves nothing."""
+    folders beside it removed) at once, and a refused or failed run leaves nothing.
+
+    In a process of a multi-process job that does not write (:func:`_writes_output`), the
+    folder is one of its own in the system's temporary folder, removed at the end and
+    never committed: only the writing process checks and commits ``dest``."""
+    if not _writes_output():
+        with _discarded_dir(Path(os.path.abspath(dest)), command, what) as tmp:
+            yield tmp
+        return
     inputs = list(inputs)
     dest = Path(os.path.abspath(dest))
     check = dict(overwrite=overwrite, inputs=inputs, replaceable=replaceable, what=what)
@@ -398,21 +476,12 @@ def output_dir(dest: str | Path, *, overwrite: bool = False, inputs: Iterable = 
         try:
             made = _make_parents(dest.parent)
             remove_stale(dest.parent)
-            token = secrets.token_hex(8)
-            tmp = dest.parent / f".{dest.name}.difstar-tmp-{token}"
             try:
-                umask = os.umask(0)
-                os.umask(umask)
-                os.mkdir(tmp, 0o777 & ~umask)
+                tmp, token, lock = _marked_tmp(dest.parent, dest.name, command)
             except OSError as exc:
                 tmp = None
                 raise OutputError(f"{what} {dest}: cannot write there ({exc.strerror}).") \
                     from None
-            # the lock first, then the marker's content: a run is never seen with a
-            # valid marker and a free lock while it lives
-            (tmp / MARKER).touch()
-            lock = _lock(tmp)
-            _write_marker(tmp, [], command, token)
             try:
                 yield tmp
             except OSError as exc:
@@ -525,19 +594,64 @@ def _json_default(x):
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
 
 
+def _srgb_icc() -> bytes:
+    """An ICC profile of sRGB (IEC 61966-2-1, D65), LittleCMS's built-in one via Pillow."""
+    from PIL import ImageCms
+
+    return ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+
+
+def _srgb_quantised(srgb, levels: int) -> np.ndarray:
+    """(3, h, w) encoded sRGB in [0, 1] → (h, w, 3) integers round(v · levels) (clipped)."""
+    a = np.asarray(srgb, float)
+    if a.ndim != 3 or a.shape[0] != 3:
+        raise ValueError(f"srgb must be (3, h, w); got shape {a.shape}")
+    return np.round(np.moveaxis(np.clip(a, 0.0, 1.0), 0, -1) * levels)
+
+
 def write_png_srgb(path: str | Path, srgb) -> None:
-    """(3, h, w) sRGB in [0, 1] → 8-bit PNG."""
-    from PIL import Image
+    """(3, h, w) sRGB in [0, 1] → 8-bit RGB PNG, tagged sRGB (an ``sRGB`` chunk, rendering
+    intent perceptual, with the ``gAMA`` 1/2.2 the PNG specification asks to go with it)."""
+    from PIL import Image, PngImagePlugin
 
-    a = np.clip(np.asarray(srgb, float), 0.0, 1.0)
-    a = np.round(np.moveaxis(a, 0, -1) * 255.0).astype(np.uint8)
-    Image.fromarray(a, mode="RGB").save(path)
+    a = _srgb_quantised(srgb, 255).astype(np.uint8)
+    info = PngImagePlugin.PngInfo()
+    info.add(b"sRGB", b"\x00")
+    info.add(b"gAMA", (45455).to_bytes(4, "big"))
+    Image.fromarray(a, mode="RGB").save(path, pnginfo=info)
 
 
-def write_tiff_raw(path: str | Path, cfa, *, pattern: str) -> None:
-    """(h, w) ζ in [0, 1] → 16-bit TIFF (0 ↔ black, 65535 ↔ white), the Bayer layout in
-    the description tag."""
+def write_tiff_srgb16(path: str | Path, srgb) -> None:
+    """(3, h, w) sRGB in [0, 1] → 16-bit RGB TIFF, round(v · 65535), tagged sRGB by an
+    embedded ICC profile (TIFF tag 34675); uncompressed, so any TIFF reader opens it."""
     import tifffile
 
-    a = np.round(np.clip(np.asarray(cfa, float), 0.0, 1.0) * 65535.0).astype(np.uint16)
-    tifffile.imwrite(path, a, description=json.dumps({"cfa_pattern": pattern, "scale": 65535}))
+    a = _srgb_quantised(srgb, 65535).astype(np.uint16)
+    tifffile.imwrite(path, a, photometric="rgb", compression=None, metadata=None,
+                     software="difstar", iccprofile=_srgb_icc())
+
+
+#: the levels (DN) of the 16-bit mosaic ``predict`` writes: ζ = 0 ↔ black, ζ = 1 ↔ white
+RAW_BLACK_LEVEL = 0
+RAW_WHITE_LEVEL = 65535
+
+
+def write_raw_dng(path: str | Path, cfa, *, pattern: str, white_balance, colour_matrix,
+                  black_level: int = RAW_BLACK_LEVEL, white_level: int = RAW_WHITE_LEVEL,
+                  exposure_time=None, focal_length=None) -> None:
+    """(h, w) normalised mosaic ζ in [0, 1] → a Bayer DNG that raw converters develop:
+    the values black + round(ζ · (white − black)) (uint16), the CFA layout ``pattern``,
+    the black and white levels, ColorMatrix1 from difstar's camera RGB → linear sRGB
+    ``colour_matrix`` and ``white_balance`` (:func:`difstar.io._dng.dng_colour_matrix`),
+    AsShotNeutral = 1/``white_balance`` (G = 1), and ``Software`` = difstar.
+    ``exposure_time`` (s) and ``focal_length`` (m) go to EXIF when given. Any even size is
+    written; LibRaw (rawpy, darktable, RawTherapee) opens only ≥ 22 × 22 pixels."""
+    from ._dng import dng_colour_matrix, write_dng
+
+    z = np.clip(np.asarray(cfa, float), 0.0, 1.0)
+    raw = (black_level + np.round(z * (white_level - black_level))).astype(np.uint16)
+    write_dng(path, raw, pattern=pattern, black_level=black_level, white_level=white_level,
+              exposure_time=exposure_time, focal_length=focal_length,
+              camera_white_balance=np.asarray(white_balance, float),
+              color_matrix=dng_colour_matrix(colour_matrix, white_balance),
+              camera_model="difstar prediction", min_side=2)
