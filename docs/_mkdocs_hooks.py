@@ -12,7 +12,7 @@ import posixpath
 import re
 from pathlib import Path
 
-from mkdocs.structure.files import File
+from mkdocs.structure.files import File, InclusionLevel
 
 log = logging.getLogger("mkdocs.plugins.difstar")
 
@@ -57,7 +57,9 @@ def on_files(files, config):
             if path.endswith(".md"):
                 todo.append((path, (repo / path).read_text()))
     for path in sorted(outside):
-        files.append(File.generated(config, f"{REPO_DIR}/{path}", abs_src_path=str(repo / path)))
+        # part of the site, reached by the links to it, not by the navigation
+        files.append(File.generated(config, f"{REPO_DIR}/{path}", abs_src_path=str(repo / path),
+                                    inclusion=InclusionLevel.NOT_IN_NAV))
     return files
 
 
