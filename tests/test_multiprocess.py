@@ -80,8 +80,9 @@ WORKER = GEOMETRIC + "D.measures_fn = geometric\n" + textwrap.dedent(f'''
     psfs = B.map_batch(lambda lam: difstar.psf(pupil, wavelength=lam, plan=plan, **kw), lams)
     if B.writes_output():  # every process holds every PSF; one writes them
         np.save(os.path.join(out, f"psfs-written-by-{{me}}.npy"), psfs)
+    # one --out for both processes: process 0 alone checks and commits it
     r["sweep_rc"] = main({SWEEP!r} + ["--devices", "2", "--out",
-                                      os.path.join(out, f"sweep{{me}}")])
+                                      os.path.join(out, "sweep")])
     print("RESULT " + json.dumps(r), flush=True)
 ''')
 
@@ -124,18 +125,23 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_pair(code: str, args: list[str], logs: Path, **extra) -> list[subprocess.Popen]:
+def start_pair(code: str | None, args: list[str], logs: Path, **extra) -> list[subprocess.Popen]:
     """The two processes of docs/sharding.md's one-host example, each with one CPU
-    device; stdout/stderr go to ``logs/{out,err}{i}.txt``."""
+    device, running ``python -c code args`` (``python -m difstar.cli args`` when ``code``
+    is None); stdout/stderr go to ``logs/{out,err}{i}.txt``. Their system temporary folder
+    (TMPDIR) is ``logs/systmp``, so that what a process leaves there can be seen."""
     port = free_port()
+    (logs / "systmp").mkdir(exist_ok=True)
     procs = []
     for i in (0, 1):
         env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}",
-                   JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(i), **extra)
+                   JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(i), TMPDIR=str(logs / "systmp"),
+                   **extra)
         for k in ("XLA_FLAGS", B.ENV_DEVICES, B.ENV_DRY_RUN):
             env.pop(k, None)
+        cmd = ["-m", "difstar.cli"] if code is None else ["-c", code]
         with open(logs / f"out{i}.txt", "w") as o, open(logs / f"err{i}.txt", "w") as e:
-            procs.append(subprocess.Popen([sys.executable, "-c", code, *args], cwd=ROOT,
+            procs.append(subprocess.Popen([sys.executable, *cmd, *args], cwd=ROOT,
                                           env=env, stdout=o, stderr=e, text=True))
     return procs
 
@@ -208,16 +214,45 @@ def test_two_processes_give_the_one_process_results(tmp_path, monkeypatch):
     assert psfs.shape == ref_psfs.shape == (8, 24, 24)
     assert np.abs(psfs - ref_psfs).max() <= 1e-12 * ref_psfs.max()
     ref_rows = json.loads((ref_dir / "sweep.json").read_text())["rows"]
-    for i in (0, 1):  # the command writes its --out in every process (docs/sharding.md)
-        doc = json.loads((out / f"sweep{i}" / "sweep.json").read_text())
-        assert doc["devices"] == 2 and len(doc["rows"]) == len(ref_rows) == 6
-        assert doc["plan"]["per_device"] == 2 and doc["plan"]["chunks"] == 2
-        for row, ref in zip(doc["rows"], ref_rows):
-            assert row.keys() == ref.keys()
-            for k, v in ref.items():
-                if isinstance(v, float):
-                    assert row[k] == pytest.approx(v, rel=1e-9, abs=1e-14), (k, row[k], v)
+    # both processes were given the same --out: one result, written by process 0 (its
+    # marker names it), and no temporary folder anywhere, the other's included
+    assert sorted(x.name for x in out.iterdir()) == ["psfs-written-by-0.npy", "sweep"]
+    marker = json.loads((out / "sweep" / ".difstar-output").read_text())
+    assert marker["pid"] == procs[0].pid
+    doc = json.loads((out / "sweep" / "sweep.json").read_text())
+    assert doc["devices"] == 2 and len(doc["rows"]) == len(ref_rows) == 6
+    assert doc["plan"]["per_device"] == 2 and doc["plan"]["chunks"] == 2
+    for row, ref in zip(doc["rows"], ref_rows):
+        assert row.keys() == ref.keys()
+        for k, v in ref.items():
+            if isinstance(v, float):
+                assert row[k] == pytest.approx(v, rel=1e-9, abs=1e-14), (k, row[k], v)
     assert not [x for x in tmp_path.rglob("*") if "difstar-tmp" in x.name]
+    assert not [x for x in (tmp_path / "systmp").iterdir() if "difstar" in x.name]
+
+
+def test_two_processes_of_predict_example_write_one_result(tmp_path):
+    """`difstar predict --example paper-focused --devices 2` started as both processes of
+    a job (docs/sharding.md): each joins the job before the example builds any array
+    (jax.distributed refuses a join after), each predicts (a trichromatic scene has
+    nothing to shard), and the one --out they share is written once, by process 0,
+    whole; no temporary folder is left beside it or in the system's temporary folder."""
+    out = tmp_path / "pred"
+    procs = start_pair(None, ["predict", "--example", "paper-focused", "--crop", "32", "32",
+                              "--devices", "2", "--out", str(out)], tmp_path)
+    wait_all(procs, tmp_path, 150)
+    assert [p.returncode for p in procs] == [0, 0], tails(tmp_path)
+    marker = json.loads((out / ".difstar-output").read_text())
+    assert marker["pid"] == procs[0].pid
+    assert sorted(marker["files"]) == sorted(x.name for x in out.iterdir()
+                                             if x.name != ".difstar-output")
+    assert {"raw.dng", "srgb16.tif", "derived.json"} <= set(marker["files"])
+    assert sorted(x.name for x in tmp_path.iterdir()) == [
+        "err0.txt", "err1.txt", "out0.txt", "out1.txt", "pred", "systmp"]
+    assert not [x for x in (tmp_path / "systmp").iterdir() if "difstar" in x.name]
+    for i in (0, 1):
+        err = (tmp_path / f"err{i}.txt").read_text()
+        assert "error" not in err.lower() and "Traceback" not in err, err
 
 
 @pytest.mark.parametrize("victim", [1, 0])
@@ -428,3 +463,43 @@ def test_launcher_mistakes_are_one_line(env, words):
     with pytest.raises(InputError) as e:
         B.launch_from_env(env)
     assert words in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_process_that_does_not_write_never_touches_the_destination(tmp_path, monkeypatch):
+    """output_dir in process 1 of a job (as _JOB records it after the join): the block
+    gets a marked folder in the system's temporary folder, removed at the end, whether
+    the block ends normally or not; the destination and its folder are not looked at (an
+    existing result is neither refused nor replaced) and nothing is written beside it. A
+    killed non-writer's folder (its lock gone) is removed by the next non-writer."""
+    from difstar.io import _output
+
+    systmp = tmp_path / "systmp"
+    systmp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(systmp))
+    monkeypatch.setattr(_output.tempfile, "tempdir", None)  # re-read TMPDIR
+    monkeypatch.setattr(B, "_JOB", {"launch": B.Launch("h:1", 2, 1, None, "JAX_* variables")})
+    assert not B.writes_output()
+    dest = tmp_path / "out" / "result"
+    dest.mkdir(parents=True)
+    (dest / "keep.txt").write_text("the user's")
+    stale = systmp / ".result.difstar-tmp-0a0b0c0d0e0f1a1b"  # a killed non-writer's
+    stale.mkdir()
+    _output._write_marker(stale, [], "predict", "0a0b0c0d0e0f1a1b")
+    before = sorted(p.name for p in (tmp_path / "out").iterdir())
+    _output.check_output_free(dest)  # not refused: not this process's to check
+    with _output.output_dir(dest, command="predict") as tmp:
+        assert tmp.parent == systmp and tmp.name.startswith(".result.difstar-tmp-")
+        assert _output.read_marker(tmp)["command"] == "predict"
+        (tmp / "a.json").write_text("{}")
+    assert not tmp.exists() and not stale.exists()
+    with pytest.raises(RuntimeError, match="boom"):
+        with _output.output_dir(dest, command="predict") as tmp:
+            (tmp / "a.json").write_text("{}")
+            raise RuntimeError("boom")
+    assert not tmp.exists()
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == before == ["result"]
+    assert sorted(p.name for p in dest.iterdir()) == ["keep.txt"]
+    assert list(systmp.iterdir()) == []
+    monkeypatch.setattr(B, "_JOB", {"launch": B.Launch("h:1", 2, 0, None, "JAX_* variables")})
+    with pytest.raises(_output.OutputExistsError):  # process 0: the usual checks
+        _output.check_output_free(dest)
