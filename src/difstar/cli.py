@@ -26,9 +26,8 @@ def _log(msg: str) -> None:
 def example_document(name: str, *, crop=None) -> dict:
     import difstar
     from difstar._examples import PAPER
-    from difstar.io._scene import scene_to_dict
-
     from difstar._validate import InputError, check_crop
+    from difstar.io._scene import scene_to_dict
 
     if name not in EXAMPLES:
         raise InputError(f"unknown example {name!r}; choose one of {', '.join(EXAMPLES)}.")
@@ -304,7 +303,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_example)
 
     for name, module in (("synth", "difstar._fit_cli"), ("fit", "difstar._fit_cli"),
-                         ("design", "difstar._design_cli"), ("fit-image", "difstar._fit_image_cli")):
+                         ("design", "difstar._design_cli"),
+                         ("fit-image", "difstar._fit_image_cli")):
         try:
             mod = __import__(module, fromlist=["register"])
         except ImportError:
