@@ -38,7 +38,17 @@ def _small_doc():
     return doc
 
 
-def test_predict_writes_everything(tmp_path):
+def test_predict_writes_everything(tmp_path, monkeypatch):
+    from difstar.io import _output
+
+    got = {}  # the float sRGB image predict renders, as handed to its writers
+    keep = _output.write_tiff_srgb16
+
+    def srgb16(path, srgb):
+        got["srgb"] = np.array(srgb, dtype=float)
+        return keep(path, srgb)
+
+    monkeypatch.setattr(_output, "write_tiff_srgb16", srgb16)
     scene = tmp_path / "scene.json"
     scene.write_text(json.dumps(_small_doc()))
     out = tmp_path / "out"
@@ -65,6 +75,10 @@ def test_predict_writes_everything(tmp_path):
     assert written_by_difstar(out / "raw.dng")
     srgb16 = _srgb16(out / "srgb16.tif")
     assert srgb16.shape == (64, 64, 3)
+    # the rendering quantised to 16 bits, exactly
+    want = np.round(np.clip(np.moveaxis(got["srgb"], 0, -1), 0, 1) * 65535)
+    assert np.array_equal(srgb16, want) and 0 < want.max() <= 65535
+    assert not written_by_difstar(out / "srgb16.tif")  # only the DNG is marked difstar's
     with Image.open(out / "srgb.png") as im:  # 8 bits, tagged sRGB, the same picture
         assert im.size == (64, 64) and im.mode == "RGB" and im.info.get("srgb") == 0
         srgb8 = np.asarray(im).astype(float)

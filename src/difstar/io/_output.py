@@ -627,8 +627,9 @@ def write_tiff_srgb16(path: str | Path, srgb) -> None:
     import tifffile
 
     a = _srgb_quantised(srgb, 65535).astype(np.uint16)
+    # no Software = difstar: that tag marks the DNGs difstar wrote (``written_by_difstar``)
     tifffile.imwrite(path, a, photometric="rgb", compression=None, metadata=None,
-                     software="difstar", iccprofile=_srgb_icc())
+                     iccprofile=_srgb_icc())
 
 
 #: the levels (DN) of the 16-bit mosaic ``predict`` writes: ζ = 0 ↔ black, ζ = 1 ↔ white
