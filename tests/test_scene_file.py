@@ -1,7 +1,8 @@
 """Spectral scene files (issue 17): a sensor's ``wavelengths`` as 3 lists of K numbers
 with ``spectral_weights``; ``difstar predict`` of such a file against ``difstar.simulate``
 of the same camera built in Python, with and without ``--devices 2`` (two host CPU
-devices, in a child Python), and bad spectral inputs refused with one line."""
+devices, in a child Python), and bad spectral inputs refused with one line. Point
+sources (issue 34): read, written back, refused when bad, naming the field."""
 
 from __future__ import annotations
 
@@ -230,3 +231,81 @@ def test_bad_spectral_scene_is_refused(tmp_path, capsys, name, edit, field, word
     if "NAN" not in text and "INF" not in text:  # the Python entry point: the same error
         with pytest.raises(SceneError, match=field):
             scene_from_dict(json.loads(text))
+
+
+# ------------------------------------------------------------ point sources (issue 34)
+
+POINT = {"type": "point", "position": [1e-3, -2e-3], "intensity": [1e-7, 2e-7, 3e-7]}
+
+
+def point_doc(crop=(32, 32)) -> dict:
+    """The paper's focused scene with a point source beside its disc."""
+    doc = cli.example_document("paper-focused", crop=crop)
+    doc["scene"]["sources"][0]["radius"] = 0.3e-3
+    doc["scene"]["sources"].append(copy.deepcopy(POINT))
+    return doc
+
+
+def test_point_sources_load_and_roundtrip():
+    camera, scene, _ = scene_from_dict(point_doc())
+    disc, point = scene.sources
+    assert isinstance(disc, difstar.DiscSource) and isinstance(point, difstar.PointSource)
+    np.testing.assert_allclose(point.position, POINT["position"], rtol=1e-15)
+    np.testing.assert_allclose(point.intensity, POINT["intensity"], rtol=1e-15)
+    doc = scene_to_dict(camera, scene)
+    assert doc["scene"]["sources"][1] == {**POINT}
+    assert doc["scene"]["sources"][0]["type"] == "disc"
+    again = scene_from_dict(doc)[1].sources
+    assert [type(s) for s in again] == [difstar.DiscSource, difstar.PointSource]
+    # a point's position may be left out (on the axis); a disc's type may be left out
+    d = point_doc()
+    del d["scene"]["sources"][1]["position"], d["scene"]["sources"][0]["type"]
+    s = scene_from_dict(d)[1].sources
+    np.testing.assert_array_equal(s[1].position, [0.0, 0.0])
+    assert isinstance(s[0], difstar.DiscSource)
+
+
+BAD_POINTS = [
+    ("negative", dict(POINT, intensity=[-1e-7, 1e-7, 1e-7]),
+     "field scene/sources/1/intensity/0", ">= 0"),
+    ("all zero", dict(POINT, intensity=[0, 0, 0]), "scene.sources[1].intensity", "> 0"),
+    ("no intensity", {"type": "point", "position": [0, 0]}, "field scene/sources/1",
+     "'intensity' is a required property"),
+    ("a radius", dict(POINT, radius=1e-3), "field scene/sources/1", "'radius' was unexpected"),
+    ("unknown type", dict(POINT, type="star"), "field scene/sources/1/type",
+     "not one of ['disc', 'point']"),
+    ("NaN", "NAN", "field scene/sources/1/intensity/0", "not a finite number"),
+    ("3-D position", dict(POINT, position=[0, 0, 0]), "field scene/sources/1/position",
+     "at most 2"),
+    ("a word", dict(POINT, intensity="bright"), "field scene/sources/1/intensity",
+     "not of type 'array'"),
+    ("a disc with intensity", {"radius": 1e-3, "intensity": [1, 1, 1]},
+     "field scene/sources/1", "'intensity' was unexpected"),
+]
+
+
+@pytest.mark.parametrize("name,source,field,words", BAD_POINTS, ids=[b[0] for b in BAD_POINTS])
+def test_bad_point_source_is_refused(tmp_path, capsys, name, source, field, words):
+    doc = point_doc()
+    doc["scene"]["sources"][1] = source
+    text = json.dumps(doc).replace('"NAN"', '{"type": "point", "intensity": [NaN, 1, 1]}')
+    with pytest.raises(SceneError) as exc:
+        scene_from_dict(json.loads(text))
+    assert field in str(exc.value) and words in str(exc.value), str(exc.value)
+    scene = tmp_path / "bad.json"
+    scene.write_text(text)
+    assert cli.main(["predict", str(scene), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("difstar: error: ") and field in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_predict_of_a_point_source_scene(tmp_path):
+    """A scene file with a point source predicts end to end (the windows sized from it)."""
+    doc = point_doc()
+    doc["scene"]["sources"] = [dict(POINT, position=[2e-5, 0.0])]
+    scene = tmp_path / "point.json"
+    scene.write_text(json.dumps(doc))
+    assert cli.main(["predict", str(scene), "--out", str(tmp_path / "out")]) == 0
+    written = json.loads((tmp_path / "out" / "scene.json").read_text())
+    assert written["scene"]["sources"][0]["type"] == "point"

@@ -323,10 +323,7 @@ def scene_from_dict(doc: dict, *, source: str = "<scene>"):
             colour_matrix=sd.get("colour_matrix"),
         )
         sc = doc["scene"]
-        sources = tuple(
-            difstar.DiscSource(s["radius"], s.get("position", (0.0, 0.0)), s.get("radiance", (1.0, 1.0, 1.0)))
-            for s in sc["sources"]
-        )
+        sources = tuple(_source_from_dict(s) for s in sc["sources"])
         scene = difstar.Scene(
             object_distance=float(sc["object_distance"]),
             sources=sources,
@@ -340,6 +337,26 @@ def scene_from_dict(doc: dict, *, source: str = "<scene>"):
             raise
         raise SceneError(f"{source}: {exc}") from None
     return camera, scene, dict(doc.get("grid", {}))
+
+
+def _source_from_dict(s: dict):
+    """A validated ``scene/sources[i]`` entry → a DiscSource or a PointSource."""
+    import difstar
+
+    position = s.get("position", (0.0, 0.0))
+    if s.get("type", "disc") == "point":
+        return difstar.PointSource(position, s["intensity"])
+    return difstar.DiscSource(s["radius"], position, s.get("radiance", (1.0, 1.0, 1.0)))
+
+
+def _source_to_dict(s) -> dict:
+    import difstar
+
+    if isinstance(s, difstar.PointSource):
+        return {"type": "point", "position": np.asarray(s.position).tolist(),
+                "intensity": np.asarray(s.intensity).tolist()}
+    return {"type": "disc", "radius": float(s.radius), "position": np.asarray(s.position).tolist(),
+            "radiance": np.asarray(s.radiance).tolist()}
 
 
 def load_scene(path: str | Path):
@@ -401,11 +418,7 @@ def scene_to_dict(camera, scene, grid_options: dict | None = None, *, name: str 
             "object_distance": float(scene.object_distance),
             "exposure_time": float(scene.exposure_time),
             "background": tolist(scene.background),
-            "sources": [
-                {"type": "disc", "radius": float(s.radius), "position": tolist(s.position),
-                 "radiance": tolist(s.radiance)}
-                for s in scene.sources
-            ],
+            "sources": [_source_to_dict(s) for s in scene.sources],
         },
     }
     if name:
