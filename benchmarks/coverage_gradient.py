@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from difstar._pupil import outline_coverage, regular_polygon_vertices, tiled_outline_coverage
+from difstar.pupils import outline_coverage, regular_polygon_vertices, tiled_outline_coverage
 
 
 def _best(fn, repeats=3):

@@ -40,9 +40,14 @@ def _best(fn, repeats: int) -> tuple[float, float]:
 
 
 def main(argv=None) -> int:
-    from difstar._fit import Fitter, make_args, to_unconstrained
-    from difstar._fit_cli import observed_data, prepare
-    from difstar.io._manifest import load_manifest
+    from difstar.raw_fit import (
+        Fitter,
+        load_manifest,
+        make_args,
+        observed_data,
+        prepare,
+        to_unconstrained,
+    )
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("manifest", nargs="?",

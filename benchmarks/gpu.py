@@ -48,10 +48,11 @@ spec = json.loads(sys.argv[1])
 import jax
 if spec.get("x64"):
     jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
 import numpy as np
 import equinox as eqx
 import difstar
-from difstar import _batch as B
+from difstar import batch as B
 
 dev = jax.devices()[0]
 
@@ -102,14 +103,17 @@ elif task == "simulate":
     c, out["compile_s"] = compile_(f, cam, scene, grid)
     out["run_s"] = timed(c, (cam, scene, grid), reps)
 elif task == "sweep":
-    from difstar._design_cli import _params, _stack, curvature_grid, measures_fn, study_setup
+    from difstar.design_study import curvature_grid, measures_fn, study_setup
     family, setup, opts = study_setup(blades=9, f_number=8.0, quick=spec["quick"])
     values = measures_fn(family, setup, opts)
     designs = curvature_grid(0.0, 0.9, spec["items"], blades=9)
     nd = jax.device_count()
     mesh = B.device_mesh(nd)
-    batch = _stack(designs + designs[:(-len(designs)) % nd])  # a whole number per device
-    run = B.sharded_vmap(lambda b: values(_params(b))[0], mesh)
+    padded = designs + designs[:(-len(designs)) % nd]  # a whole number per device
+    batch = {k: jnp.asarray(np.stack([d[k] for d in padded]), jnp.result_type(float))
+             for k in ("curvature", "radial", "angular")}
+    run = B.sharded_vmap(lambda b: values(difstar.IrisParams(b["curvature"], b["radial"],
+                                                             b["angular"]))[0], mesh)
     x = B.shard(batch, mesh)
     c, out["compile_s"] = compile_(run, x)
     out["run_s"] = timed(c, (x,), reps)

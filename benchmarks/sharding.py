@@ -5,14 +5,14 @@ devices (their Eigen operations single-threaded: ``--xla_cpu_multi_thread_eigen=
 so that N devices use about N cores), and
 times, after a first run that compiles:
 
-- spectral render: ``difstar._batch.simulate_spectral`` of the paper's focused scene in
+- spectral render: ``difstar.batch.simulate_spectral`` of the paper's focused scene in
   the spectral model (``--wavelengths`` per channel, evenly over ±40 nm about the
   paper's 600/530/450 nm, equal weights), ``--crop`` pixels;
-- fits: ``difstar._batch.solve_many`` of ``--fits`` small fits (the tiny synthetic model
+- fits: ``difstar.batch.solve_many`` of ``--fits`` small fits (the tiny synthetic model
   of ``tests/test_fit.py``: 64² crop, 2 captures, 7 free values) for ``--steps`` solver
   steps each (on CPU a device's fits step one after another, see
-  ``difstar._batch.lapack_in_turn``);
-- design sweep: ``difstar._design_cli.sweep_designs`` of ``--designs`` 9-blade irises at
+  ``difstar.batch.lapack_in_turn``);
+- design sweep: ``difstar.design_study.sweep_designs`` of ``--designs`` 9-blade irises at
   f/8 (``difstar design --quick``'s setup: 64² focused and 64² defocused PSFs per design),
   curvature evenly over [0, 0.9];
 - one fit's Jacobian: a solver step of the synthetic campaign's fit (10 captures, 21
@@ -38,7 +38,7 @@ import json, sys, time
 import jax, numpy as np
 jax.config.update("jax_enable_x64", True)
 import difstar
-from difstar import _batch as B
+from difstar import batch as B
 cfg = json.loads(sys.argv[1])
 n = jax.device_count()
 out = {"devices": n, "cpus": len(__import__("os").sched_getaffinity(0))}
@@ -53,7 +53,7 @@ cam = difstar.Camera(camera.lens, difstar.Sensor(
     white_balance=s.white_balance))
 grid = difstar.choose_grid(cam, scene, crop=(cfg["crop"], cfg["crop"]), raw_only=True)
 if "design" in cfg["only"]:
-  from difstar._design_cli import curvature_grid, sweep_designs
+  from difstar.design_study import curvature_grid, sweep_designs
   designs = curvature_grid(0.0, 0.9, cfg["designs"], blades=9)
   sweep_designs(designs, quick=True, devices=n)  # compile
   best = float("inf")
@@ -67,9 +67,8 @@ if "design" in cfg["only"]:
   sys.exit(0)
 if "jacobian" in cfg["only"]:
   # one fit: the synthetic campaign's 10 captures, its Jacobian's columns shared out
-  from difstar._fit import Fitter, make_args, to_unconstrained
-  from difstar._fit_cli import observed_data, prepare
-  from difstar.io._manifest import load_manifest
+  from difstar.raw_fit import (Fitter, load_manifest, make_args, observed_data, prepare,
+                               to_unconstrained)
   man = load_manifest("fit/synthetic-paper-camera/manifest.json")
   model, caps = prepare(man)
   fitter = Fitter(model, method=man.solver["method"], devices=n)

@@ -38,7 +38,7 @@ def _sensor(sensor, wavelengths, weights):
 def _dense(sens):
     """Every 5 nm over the sensitivities' band (within 380–780 nm), per channel:
     wavelengths and normalised weights (3, n)."""
-    from difstar._spectrum import dense_weights
+    from difstar import dense_weights
 
     cw = dense_weights(5000.0, sens)
     w = np.asarray(cw.normalised)
@@ -58,7 +58,7 @@ def main(argv=None, prog=None) -> int:
     import jax
 
     import difstar
-    from difstar._examples import paper_sensitivities
+    from difstar import paper_sensitivities
 
     crop = (args.crop, args.crop)
     camera, scene = difstar.paper_camera("focused")

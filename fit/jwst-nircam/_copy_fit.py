@@ -31,8 +31,7 @@ def fit_copy(manifest: Path, out: Path, name: str, change, description: str):
     ``difstar fit-image`` into ``out/fit``. Returns that fit's ``result.json`` as a dict,
     or None (with a message) when ``out`` exists or the manifest has more than one
     capture. On any failure removes ``out`` again (only what it made)."""
-    from difstar._fit_image_cli import run
-    from difstar._fitting import _resolve
+    from difstar.fitting import resolve_data_path, run_fit_image
 
     man = json.loads(manifest.read_text())
     if not isinstance(man["data"], dict):
@@ -44,12 +43,12 @@ def fit_copy(manifest: Path, out: Path, name: str, change, description: str):
         print(f"{out} exists: give a new folder.", file=sys.stderr)
         return None
     try:
-        write_changed_fits(Path(_resolve(man["data"]["path"], manifest.parent)), out / name,
-                           change)
+        write_changed_fits(Path(resolve_data_path(man["data"]["path"], manifest.parent)),
+                           out / name, change)
         man["data"] = dict(man["data"], path=name)
         man["description"] = description + " " + man.get("description", "")
         (out / "manifest.json").write_text(json.dumps(man, indent=2) + "\n")
-        run(out / "manifest.json", out / "fit")
+        run_fit_image(out / "manifest.json", out / "fit")
     except BaseException:
         shutil.rmtree(out)  # only what this script made
         raise

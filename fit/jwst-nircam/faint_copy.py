@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # as difstar fit-image runs
-    from difstar._fit_image_cli import fit_fainter_copy
+    from difstar.fitting import fit_fainter_copy
 
     res_dir = Path(a.result)
     summary = json.loads((res_dir / "result.json").read_text())

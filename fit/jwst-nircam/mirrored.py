@@ -31,7 +31,7 @@ import numpy as np
 def odd_in_x(values) -> list[str]:
     """The parameters that change sign under x → −x: the pupil's rotation, the upper
     strut's tilt, the centre's x and the Zernike terms odd in x (found numerically)."""
-    from difstar._zernike import zernike_noll
+    from difstar import zernike_noll
 
     x, y = np.array([0.3, 0.5, -0.2, 0.7]), np.array([0.4, -0.1, 0.6, 0.2])
     odd = ["rotation", "strut_tilt", "x0"]

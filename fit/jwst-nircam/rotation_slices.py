@@ -50,7 +50,7 @@ def main(argv=None) -> int:
 
     jax.config.update("jax_enable_x64", True)
     from difstar import FitInputError, chi2_slice, fit_image, load_fit_manifest
-    from difstar.io._output import OutputError, output_dir
+    from difstar.io import OutputError, output_dir
 
     lo, hi, step = a.grid
     if not (np.isfinite([lo, hi, step]).all() and step > 0 and hi > lo):

@@ -2363,8 +2363,8 @@ def _nowarn():
 # --- manifests ----------------------------------------------------------------------------
 
 
-def _resolve(path: str, manifest_dir, *, field: str | None = None,
-             source: str = "manifest") -> str:
+def resolve_data_path(path: str, manifest_dir, *, field: str | None = None,
+                      source: str = "manifest") -> str:
     """A data path from a manifest: absolute, or relative to the manifest's folder, the
     current folder or the repository root (the folder above ``fit/``), whichever exists.
     ``field``: the manifest's field that gave it (named in the error)."""
@@ -2410,7 +2410,7 @@ def _load_capture(d: Mapping, where, manifest_dir, *, source: str = "manifest",
     if not isinstance(d, Mapping) or "path" not in d:
         raise FitInputError(f"{source}: field {where}: needs a 'path' (the image file).")
     inputs = [] if inputs is None else inputs
-    file = _resolve(d["path"], manifest_dir, field=f"{where}/path", source=source)
+    file = resolve_data_path(d["path"], manifest_dir, field=f"{where}/path", source=source)
     inputs.append(file)
     im = _read_at(file, f"{where}/path", source)
     h, w = im.shape
@@ -2427,7 +2427,7 @@ def _load_capture(d: Mapping, where, manifest_dir, *, source: str = "manifest",
     mask = np.array(im.valid)
     sigma = d.get("sigma")
     if isinstance(sigma, str):  # a σ map: an image of the data's shape
-        sfile = _resolve(sigma, manifest_dir, field=f"{where}/sigma", source=source)
+        sfile = resolve_data_path(sigma, manifest_dir, field=f"{where}/sigma", source=source)
         inputs.append(sfile)
         sm = _read_at(sfile, f"{where}/sigma", source)
         if sm.shape != im.shape:
@@ -2491,7 +2491,8 @@ def _load_source(src, manifest_dir, *, source: str = "manifest",
         if set(src) != {"image"} or not isinstance(src["image"], str):
             raise FitInputError(f"{source}: field source: must be 'point', 'disc' or "
                                 f"{{'image': path}}; got {dict(src)}.")
-        file = _resolve(src["image"], manifest_dir, field="source/image", source=source)
+        file = resolve_data_path(src["image"], manifest_dir, field="source/image",
+                                 source=source)
         if inputs is not None:
             inputs.append(file)
         im = _read_at(file, "source/image", source)

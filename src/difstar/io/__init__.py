@@ -8,6 +8,11 @@ from ._pupil_photo import (
     PupilPolygon as PupilPolygon,
     estimate_pupil_polygon as estimate_pupil_polygon,
 )
+from ._output import (
+    OutputError as OutputError,
+    output_dir as output_dir,
+    write_file_atomic as write_file_atomic,
+)
 from ._images import (
     ImageData as ImageData,
     ImageReadError as ImageReadError,

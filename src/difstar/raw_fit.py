@@ -1,0 +1,30 @@
+"""The RAW camera fitter: fit a camera's lens and sensor to RAW captures of a star (the
+``difstar synth`` / ``difstar fit`` commands use it).
+
+The pure layer (a :class:`FitModel` of named parameters, a :class:`Fitter` running the
+Levenberg–Marquardt stepper on its unconstrained vector) and the manifest boundary
+(:func:`load_manifest`, :func:`prepare`, :func:`observed_data`) that turns a manifest
+and its captures into that model and its data.
+"""
+
+from ._fit import CameraConstants as CameraConstants
+from ._fit import CaptureSpec as CaptureSpec
+from ._fit import ConfigSpec as ConfigSpec
+from ._fit import FitModel as FitModel
+from ._fit import Fitter as Fitter
+from ._fit import ParamSpec as ParamSpec
+from ._fit import from_unconstrained as from_unconstrained
+from ._fit import make_args as make_args
+from ._fit import noise_sigma as noise_sigma
+from ._fit import param_shape as param_shape
+from ._fit import to_unconstrained as to_unconstrained
+from ._fit import weights as weights
+from ._fit_cli import observed_data as observed_data
+from ._fit_cli import prepare as prepare
+from .io._manifest import load_manifest as load_manifest
+
+__all__ = [
+    "CameraConstants", "CaptureSpec", "ConfigSpec", "FitModel", "Fitter", "ParamSpec",
+    "from_unconstrained", "load_manifest", "make_args", "noise_sigma", "observed_data",
+    "param_shape", "prepare", "to_unconstrained", "weights",
+]
