@@ -6,13 +6,16 @@ padding, float64, for the paper's focused (vs the exact polygon transform) and d
 """
 
 import sys
+from pathlib import Path
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from difstar import _bench as b  # noqa: E402
-from difstar._sampling import choose_grid  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # speed_vs_error.py beside this
+import speed_vs_error as b  # noqa: E402
+
+from difstar import choose_grid  # noqa: E402
 
 crop = (int(sys.argv[1]) if len(sys.argv) > 1 else 256,) * 2
 print("| scene | padding | N | N/crop | lin. err outside core |")

@@ -1,7 +1,6 @@
 """The PSF engine's figures (issue 13, "Done means"), side by side in one run.
 
     python benchmarks/psf_engine.py [--only accuracy|speed] [--repeats 3]
-    difstar bench --psf                      (the same, from a clone)
 
 Prints Markdown tables (progress on stderr):
 
