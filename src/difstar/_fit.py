@@ -17,6 +17,10 @@ time only, and JAX keeps the PSF computation unbatched.
 Parameters (name → shape, unit):
 
 - ``circumradius`` (), m — exit-pupil circumradius of the regular n-gon;
+- ``curvature`` (), 1 — every blade's relative edge curvature R·κ (present: the iris is a
+  :class:`difstar.CurvedIris`, 0 straight, 1 the circumscribed circle; absent: straight);
+- ``z<j>`` (), m RMS — the Noll-``j`` Zernike term of the wavefront (j ≥ 2; e.g. ``z11``
+  spherical aberration), normalised over a circle of the camera's ``zernike_radius``;
 - ``rotation`` (), rad — angle of the first vertex (a regular n-gon is only defined
   modulo 2π/n; :func:`wrap_rotation` compares angles accordingly);
 - ``vertex_radial`` (n,), fraction of the circumradius, and ``vertex_angular`` (n,),
@@ -48,12 +52,14 @@ from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, simulate
 from ._image import DiscSource
 from ._lm import LMStepper, SolveResult
 from ._pupil import Polygon, RegularPolygon
+from ._pupil_curved import CurvedIris
+from ._zernike import Zernike
 from ._sensor import Response, response_curve
 
-SHARED = ("circumradius", "rotation", "vertex_radial", "vertex_angular", "source_radius",
-          "phi0", "toe", "knee", "background")
+SHARED = ("circumradius", "curvature", "rotation", "vertex_radial", "vertex_angular",
+          "source_radius", "phi0", "toe", "knee", "background")
 UNITS = {
-    "circumradius": "m", "rotation": "rad", "vertex_radial": "1", "vertex_angular": "rad",
+    "circumradius": "m", "curvature": "1", "zernike": "m", "rotation": "rad", "vertex_radial": "1", "vertex_angular": "rad",
     "defocus": "m", "source_radius": "m", "source_offset": "px", "phi0": "s", "toe": "1",
     "knee": "1", "background": "1", "exposure_scale": "1",
 }
@@ -61,6 +67,17 @@ UNITS = {
 
 def base_name(name: str) -> str:
     return name.split("/", 1)[0]
+
+
+def zernike_index(name: str) -> int | None:
+    """j for a parameter named ``z<j>`` (a Zernike term), else None."""
+    if len(name) > 1 and name[0] == "z" and name[1:].isdigit():
+        return int(name[1:])
+    return None
+
+
+def unit_of(name: str) -> str:
+    return UNITS["zernike"] if zernike_index(name) is not None else UNITS[base_name(name)]
 
 
 def param_shape(name: str, n_blades: int) -> tuple[int, ...]:
@@ -71,7 +88,11 @@ def param_shape(name: str, n_blades: int) -> tuple[int, ...]:
         return (3,)
     if b == "source_offset":
         return (2,)
-    if b in ("circumradius", "rotation", "defocus", "source_radius", "exposure_scale"):
+    if b in ("circumradius", "curvature", "rotation", "defocus", "source_radius",
+             "exposure_scale"):
+        return ()
+    j = zernike_index(b)
+    if j is not None and j >= 2:
         return ()
     raise ValueError(f"unknown fit parameter {name!r}")
 
@@ -124,6 +145,7 @@ class CameraConstants:
     n_blades: int
     white_balance: tuple[float, float, float] = (2.0, 1.0, 2.0)
     colour_matrix: tuple | None = None
+    zernike_radius: float | None = None  # m; the Zernike terms' circle (None: no terms)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -239,13 +261,27 @@ def pupil_of(model: FitModel, x: dict):
     r, rot = x["circumradius"], x["rotation"]
     dr = x.get("vertex_radial")
     da = x.get("vertex_angular")
-    if dr is None and da is None:
+    curv = x.get("curvature")
+    if dr is None and da is None and curv is None:
         return RegularPolygon(n, r, rot)
     dr = jnp.zeros(n) if dr is None else dr - jnp.mean(dr)
     da = jnp.zeros(n) if da is None else da - jnp.mean(da)
+    if curv is not None:
+        return CurvedIris(n, r, curv, radial=dr, angular=da, rotation=rot)
     theta = rot + 2 * math.pi * jnp.arange(n) / n + da
     rad = r * (1.0 + dr)
     return Polygon(jnp.stack([rad * jnp.cos(theta), rad * jnp.sin(theta)], axis=-1))
+
+
+def wavefront_of(model: FitModel, x: dict):
+    """The Zernike wavefront of the ``z<j>`` parameters (metres RMS), or None."""
+    terms = {zernike_index(k): v for k, v in x.items() if zernike_index(k) is not None}
+    if not terms:
+        return None
+    if model.camera.zernike_radius is None:
+        raise ValueError("Zernike parameters (z<j>) need camera.zernike_radius, the circle "
+                         "(metres in the exit pupil) the terms are normalised over.")
+    return Zernike(terms, radius=model.camera.zernike_radius)
 
 
 def camera_scene(model: FitModel, x: dict, config: str):
@@ -258,6 +294,7 @@ def camera_scene(model: FitModel, x: dict, config: str):
         pupil_of(model, x), focal_length=cc.focal_length, focus_distance=cfg.focus_distance,
         principal_separation=cc.principal_separation,
         pupil_magnification=cc.pupil_magnification, defocus=x.get(f"defocus/{config}"),
+        wavefront=wavefront_of(model, x),
     )
     sensor = Sensor(
         pixel_pitch=cc.pixel_pitch, pattern=cc.pattern, wavelengths=cc.wavelengths,

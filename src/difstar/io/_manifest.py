@@ -40,6 +40,9 @@ class Manifest:
     grid: dict
     solver: dict
     synthetic: dict | None
+    #: the true values known for some parameters (all of them for ``synthetic``
+    #: manifests; some, from the ``truth`` block, for captures made outside difstar)
+    truth: dict | None = None
 
     @property
     def folder(self) -> Path:
@@ -139,6 +142,12 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
         params[name] = {"shape": shape, "free": free, "start": start, "lo": lo, "hi": hi,
                         "perturb_scale": scale}
 
+    zern = sorted(k for k in params if k[0] == "z" and k[1:].isdigit())
+    if zern and "zernike_radius" not in cam:
+        raise SceneError(
+            f"{src}: field camera/zernike_radius: the Zernike parameters {zern} need the "
+            "radius (metres, in the exit pupil) of the circle they are normalised over; "
+            "give camera.zernike_radius, e.g. the iris's circumradius.")
     if not any(p["free"] for p in params.values()):
         raise SceneError(
             f"{src}: field parameters: no parameter is free, so there is nothing to fit; "
@@ -173,12 +182,23 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
                     f"{src}: field captures/{cp.name}/source_position: {[r, col]} is outside "
                     f"the synthetic frame {fh} × {fw}"
                 )
+    truth = None if syn is None else syn["truth"]
+    if doc.get("truth") is not None:
+        if syn is not None:
+            raise SceneError(f"{src}: field truth: a synthetic manifest's truth is "
+                             "synthetic/truth; give one of the two")
+        truth = {}
+        for name, v in doc["truth"]["values"].items():
+            where = f"{src}: field truth/values/{name}"
+            if name not in params:
+                raise SceneError(f"{where}: not a parameter of this manifest")
+            truth[name] = _shaped(v, params[name]["shape"], where)
     return Manifest(
         path=path, doc=doc, camera=cam, noise=noise, configurations=configs,
         captures=tuple(caps), parameters=params, grid=dict(doc.get("grid", {})),
         solver={"method": "lm", "max_steps": 100, "rtol": 1e-6, "atol": 1e-6,
                 "reweight": 1, **doc.get("solver", {})},
-        synthetic=syn,
+        synthetic=syn, truth=truth,
     )
 
 
