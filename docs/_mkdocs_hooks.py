@@ -79,15 +79,57 @@ def on_page_markdown(markdown, page, config, files):
     return LINK.sub(rewrite, markdown)
 
 
+def _api_entries(api: Path) -> dict[str, set[str] | None]:
+    """``::: difstar...`` entries of docs/api/*.md: identifier -> its ``members`` list
+    (None: every member)."""
+    entries: dict[str, set[str] | None] = {}
+    for md in sorted(api.glob("*.md")):
+        current = None
+        in_members = False
+        for line in md.read_text().splitlines():
+            m = re.match(r"^::: (difstar[\w.]*)\s*$", line)
+            if m:
+                current, in_members = m.group(1), False
+                entries[current] = None
+                continue
+            if current is None:
+                continue
+            if re.match(r"^\s+members:\s*$", line):
+                in_members, entries[current] = True, set()
+            elif in_members and (item := re.match(r"^\s+- (\w+)\s*$", line)):
+                entries[current].add(item.group(1))
+            elif not line.startswith(" "):
+                current, in_members = None, False
+    return entries
+
+
 def on_post_build(config):
-    """Every public name of ``difstar`` has an entry in the API reference (docs/api/)."""
+    """Every public name has an entry in the API reference (docs/api/): each name of the
+    top-level ``difstar``, and each public module's names that the top level lacks."""
+    import importlib
+    import pkgutil
+
     import difstar
 
-    api = Path(config["docs_dir"]) / "api"
-    listed = set()
-    for md in api.glob("*.md"):
-        listed |= set(re.findall(r"^::: difstar\.(\w+)\s*$", md.read_text(), re.M))
+    entries = _api_entries(Path(config["docs_dir"]) / "api")
     public = {n for n in vars(difstar) if not n.startswith("_")
               and getattr(getattr(difstar, n), "__module__", "").startswith("difstar")}
-    for name in sorted(public - listed):
-        log.warning(f"difstar.{name} is public but has no '::: difstar.{name}' in docs/api/")
+    for name in sorted(public):
+        if f"difstar.{name}" not in entries:
+            log.warning(f"difstar.{name} is public but has no '::: difstar.{name}' in docs/api/")
+    top = {n for n in vars(difstar) if not n.startswith("_")}
+    for info in pkgutil.iter_modules(difstar.__path__):
+        if info.name.startswith("_") or info.name == "cli":  # cli: docs/cli.md
+            continue
+        ident = f"difstar.{info.name}"
+        if ident not in entries:
+            log.warning(f"{ident} is a public module but has no '::: {ident}' in docs/api/")
+            continue
+        members = entries[ident]
+        if members is None:
+            continue
+        mod = importlib.import_module(ident)
+        names = set(getattr(mod, "__all__", [n for n in vars(mod) if not n.startswith("_")]))
+        for name in sorted(names - top - members):
+            log.warning(f"{ident}.{name} is public but not in the members of '::: {ident}' "
+                        "in docs/api/")
