@@ -204,3 +204,38 @@ def test_sweep_schema_accepts_the_example_and_names_the_fields():
     jsonschema.validate(SWEEP, schema)
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate({"designs": [{"curvature": 2}]}, schema)
+
+
+def test_bad_optimiser_flag_is_refused_before_computing(tmp_path, capsys, monkeypatch):
+    import difstar._design_cli as cli
+
+    def reached(*a, **k):
+        raise AssertionError("computing started before the input was refused")
+
+    monkeypatch.setattr(cli, "iris_study", reached)
+    out = tmp_path / "out"
+    code, cap = _run(["design", "--quick", "--optimiser", "bfgs", "--out", out], capsys)
+    assert code == 2 and cap.err.count("\n") == 1, cap.err
+    assert "--optimiser: 'bfgs' is not one of adam, lbfgsb" in cap.err
+    # a sweep optimises nothing: the flag is refused there too
+    code, cap = _run(["design", "--quick", "--sweep-curvature", "0", "1", "2", "--optimiser",
+                      "lbfgsb", "--out", out], capsys)
+    assert code == 2 and "--optimiser: a sweep measures its designs as given" in cap.err
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_study_with_lbfgsb_keeps_the_bounds():
+    from difstar._design_cli import iris_study
+
+    r = iris_study(quick=True, steps=3, optimiser="lbfgsb", max_curvature=0.4,
+                   vertex_bound=0.01, log=lambda m: None)
+    assert r["config"]["optimiser"] == "lbfgsb"
+    p = r["params"]
+    # the spikes fall all the way from curvature 0 to the disc, so the optimum is the
+    # bound 0.4, which L-BFGS-B reaches exactly (Adam's sigmoid only approaches it)
+    assert p["curved"]["curvature"] == 0.4
+    assert 0 <= p["curved+vertices"]["curvature"] <= 0.4
+    assert np.all(np.abs(p["curved+vertices"]["radial"]) <= 0.01)
+    assert np.all(np.abs(p["curved+vertices"]["angular"]) <= 0.01)
+    assert r["evaluations"]["curved"] > 1

@@ -14,8 +14,10 @@ A design study is four things:
    circumradius analytically (:func:`difstar.curved_iris_from_area`), bounds (convexity,
    blade curvature) by a smooth map from unconstrained values (:class:`Box`), the blade
    count static;
-4. an **optimiser** — an optax gradient transformation (default Adam) or an optimistix
-   minimiser, run by :func:`design`, which returns the history.
+4. an **optimiser** — an optax gradient transformation (default Adam) on the
+   unconstrained values, an optimistix minimiser, or the bound-constrained quasi-Newton
+   :class:`LBFGSB` (``optimiser="lbfgsb"``) on the bounded parameters themselves, run by
+   :func:`design`, which returns the history.
 
 Image geometry: PSFs are (H, W) arrays centred on pixel (H//2, W//2); angles in the
 image are measured from the +x axis (columns to the right) towards +y (rows upwards),
@@ -435,12 +437,107 @@ class Box(eqx.Module):
 # --- the optimiser loop ---------------------------------------------------------------------
 
 
+class LBFGSB(eqx.Module):
+    """Bound-constrained quasi-Newton (L-BFGS-B, ``jaxopt.LBFGSB``) for :func:`design`,
+    working in the bounded parameters themselves: no sigmoid map, so a parameter can sit
+    exactly on its bound (where the optimum of a bounded design often is) and every
+    iterate stays inside the :class:`Box` (each step ends on the segment from the
+    iterate to a point of the box; rounding is clipped off).
+
+    history: correction pairs kept (the memory of the Hessian approximation).
+    tol: stop once the projected gradient's largest component is at most ``tol`` (in
+        the objective's units per parameter unit); 0 (the default) runs every step but
+        still stops when a line search can no longer lower the objective.
+    max_linesearch: objective evaluations per line search at most.
+
+    Each iteration is one line search (usually one objective-and-gradient evaluation;
+    more when the step has to be shortened). The first step is the plain projected
+    gradient, so its length is set by the objective's scale; later steps are scaled by
+    the curvature seen so far. jaxopt is no longer maintained (its authors point to
+    optax); its import-time DeprecationWarning is silenced here, where it is imported.
+    """
+
+    history: int = eqx.field(static=True, default=10)
+    tol: Real = eqx.field(static=True, default=0.0)
+    max_linesearch: int = eqx.field(static=True, default=30)
+
+    def __check_init__(self):
+        from ._validate import check_number
+
+        check_number(self.history, "LBFGSB.history", integer=True, ge=1, le=1000,
+                     fix="correction pairs kept, e.g. 10")
+        check_number(self.tol, "LBFGSB.tol", ge=0,
+                     fix="a projected-gradient tolerance, or 0 to run every step")
+        check_number(self.max_linesearch, "LBFGSB.max_linesearch", integer=True, ge=1,
+                     le=1000, fix="objective evaluations per line search, e.g. 30")
+
+    def solver(self, loss: Callable):
+        """The ``jaxopt.LBFGSB`` minimising ``loss(params) -> (value, aux)``."""
+        import warnings
+
+        with warnings.catch_warnings():  # "JAXopt is no longer maintained" (0.8.5)
+            warnings.filterwarnings("ignore", category=DeprecationWarning,
+                                    module="jaxopt")
+            warnings.filterwarnings("ignore", message=".*JAXopt.*",
+                                    category=DeprecationWarning)
+            import jaxopt
+
+        # max_stepsize 1: a step never goes past the projected quasi-Newton point, which
+        # lies in the box, so the iterates stay feasible
+        return jaxopt.LBFGSB(fun=loss, has_aux=True, tol=self.tol,
+                             history_size=self.history, maxls=self.max_linesearch,
+                             max_stepsize=1.0)
+
+
+#: the optimisers :func:`design` knows by name, each with its defaults
+OPTIMISERS = {"adam": "optax.adam(0.1) on the sigmoid-unconstrained values of the Box",
+              "lbfgsb": "LBFGSB(): bound-constrained quasi-Newton in the parameters"}
+
+
+def optimiser_kind(optimiser) -> tuple[str, Any]:
+    """The one place that decides how :func:`design` runs an optimiser: returns
+    (``"optax"`` | ``"optimistix"`` | ``"lbfgsb"``, the optimiser object), turning the
+    names of :data:`OPTIMISERS` (and None, Adam) into their default objects. Anything
+    else is refused with the accepted forms."""
+    from ._validate import InputError
+
+    if optimiser is None or (isinstance(optimiser, str) and optimiser == "adam"):
+        import optax
+
+        return "optax", optax.adam(0.1)
+    if isinstance(optimiser, str):
+        if optimiser == "lbfgsb":
+            return "lbfgsb", LBFGSB()
+        raise InputError(f"optimiser: {optimiser!r} is not a known optimiser; give one of "
+                         f"{', '.join(map(repr, OPTIMISERS))}, an optax "
+                         "GradientTransformation, an optimistix minimiser or "
+                         "difstar._design.LBFGSB(...).")
+    if isinstance(optimiser, LBFGSB):
+        return "lbfgsb", optimiser
+    import optimistix as optx
+
+    if isinstance(optimiser, optx.AbstractMinimiser):
+        return "optimistix", optimiser
+    if callable(getattr(optimiser, "init", None)) and callable(
+            getattr(optimiser, "update", None)):
+        return "optax", optimiser
+    raise InputError(f"optimiser: a {type(optimiser).__name__} is not an optimiser; give "
+                     f"one of {', '.join(map(repr, OPTIMISERS))}, an optax "
+                     "GradientTransformation, an optimistix minimiser or "
+                     "difstar._design.LBFGSB(...).")
+
+
+
 class DesignResult(eqx.Module):
     """What :func:`design` returns.
 
     params: the final parameters; best_params / best_value: the best seen;
-    history: ``{"value": (steps + 1,), "aux": {name: (steps + 1,)}, "params": [PyTree]}``
-    — entry i is at the parameters after i steps (for optimistix, its i-th iterate).
+    history: ``{"value": (steps + 1,), "aux": {name: (steps + 1,)}, "params": [PyTree],
+    "evaluations": (steps + 1,)}`` — entry i is at the parameters after i steps (for
+    optimistix and L-BFGS-B, the i-th iterate; fewer entries when they stop early);
+    ``evaluations[i]``: the objective-and-gradient evaluations the optimiser had made
+    when entry i's value was known (Adam and optimistix: one per step; L-BFGS-B: its
+    line searches' count). Evaluations made only to record the history are not counted.
     """
 
     params: Any
@@ -478,8 +575,11 @@ def design(
         feasible parameters. Fixed area is not a bound: build the pupil with
         :meth:`IrisFamily.pupil` inside the objective.
     optimiser: an ``optax.GradientTransformation`` (default ``optax.adam(0.1)``, suited
-        to the unconstrained values of a Box) or an optimistix minimiser (e.g.
-        ``optx.BFGS(rtol=1e-6, atol=1e-8)``), stepped one iteration at a time.
+        to the unconstrained values of a Box), an optimistix minimiser (e.g.
+        ``optx.BFGS(rtol=1e-6, atol=1e-8)``), both stepped one iteration at a time on
+        the unconstrained values, or :class:`LBFGSB` (``"lbfgsb"`` for its defaults),
+        which works on the parameters themselves within the Box's bounds. Names:
+        :data:`OPTIMISERS` (``"adam"``, ``"lbfgsb"``); :func:`optimiser_kind` decides.
     steps: iterations. callback(step, params, value, aux): called after every step with
         concrete values; returning True stops early.
 
@@ -489,34 +589,38 @@ def design(
 
     steps = check_number(steps, "steps", integer=True, ge=0,
                          fix="the optimiser iterations")
+    kind, optimiser = optimiser_kind(optimiser)
     fn = _split_objective(objective)
-    box = constraints
+    values, auxes, plist, evals = [], [], [], []
 
-    def loss(u):
-        p = box.constrain(u) if box is not None else u
-        return fn(p)
+    if kind == "lbfgsb":
+        bounds = _box_bounds(constraints)
 
-    to_params = (lambda u: box.constrain(u)) if box is not None else (lambda u: u)
-    u = box.unconstrain(params0) if box is not None else params0
+        def record(p_, val, aux, n_eval):
+            values.append(float(val))
+            auxes.append({k: float(v) for k, v in aux.items()})
+            plist.append(jax.device_get(p_))
+            evals.append(int(n_eval))
 
-    import optimistix as optx
-
-    if optimiser is None:
-        import optax
-
-        optimiser = optax.adam(0.1)
-
-    values, auxes, plist = [], [], []
-
-    def record(u_, val, aux):
-        values.append(float(val))
-        auxes.append({k: float(v) for k, v in aux.items()})
-        plist.append(jax.device_get(to_params(u_)))
-
-    if isinstance(optimiser, optx.AbstractMinimiser):
-        u = _run_optimistix(loss, u, optimiser, steps, record, callback, to_params)
+        _run_lbfgsb(fn, params0, bounds, optimiser, steps, record, callback)
     else:
-        u = _run_optax(loss, u, optimiser, steps, record, callback, to_params)
+        box = constraints
+
+        def loss(u):
+            p = box.constrain(u) if box is not None else u
+            return fn(p)
+
+        to_params = (lambda u: box.constrain(u)) if box is not None else (lambda u: u)
+        u = box.unconstrain(params0) if box is not None else params0
+
+        def record(u_, val, aux):
+            values.append(float(val))
+            auxes.append({k: float(v) for k, v in aux.items()})
+            plist.append(jax.device_get(to_params(u_)))
+            evals.append(len(values))  # one evaluation per step (see DesignResult)
+
+        run = _run_optimistix if kind == "optimistix" else _run_optax
+        run(loss, u, optimiser, steps, record, callback, to_params)
     vals = np.asarray(values)
     best = int(np.nanargmin(vals))
     keys = auxes[0].keys() if auxes else ()
@@ -524,8 +628,119 @@ def design(
         "value": vals,
         "aux": {k: np.asarray([a[k] for a in auxes]) for k in keys},
         "params": plist,
+        "evaluations": np.asarray(evals),
     }
     return DesignResult(plist[-1], plist[best], jnp.asarray(vals[best]), history)
+
+
+def _box_bounds(constraints):
+    """(lower, upper) of the constraints for :class:`LBFGSB` (None: unbounded)."""
+    from ._validate import InputError
+
+    if constraints is None:
+        return None
+    if not isinstance(constraints, Box):
+        raise InputError(f"constraints: L-BFGS-B needs the bounds themselves, a Box; got a "
+                         f"{type(constraints).__name__}. Give a Box (e.g. "
+                         "IrisFamily.bounds(...)), or an optax optimiser for other "
+                         "reparametrisations.")
+    return constraints.lower, constraints.upper
+
+
+def _unit_box(bounds):
+    """(to_params, to_unit, unit bounds) for :class:`LBFGSB`: each bounded parameter as
+    its fraction t ∈ [0, 1] of its range, p = lower + (upper − lower) t — an affine
+    rescaling (a diagonal preconditioner), not a reparametrisation: p is exactly
+    ``lower`` at t = 0 and exactly ``upper`` at t = 1 (rounding is clipped off), and
+    dp/dt = upper − lower everywhere, bounds included. Fixed parameters (a range of zero
+    width) stay at their value. Unbounded (None): the parameters themselves."""
+    if bounds is None:
+        return (lambda t: t), (lambda p: p), None
+    lower, upper = bounds
+
+    def up(lo, hi, t):
+        span = hi - lo
+        affine = lo + span * t
+        exact = jnp.where(t >= 1, hi, jnp.where(t <= 0, lo, jnp.clip(affine, lo, hi)))
+        return affine + jax.lax.stop_gradient(exact - affine)
+
+    def down(lo, hi, p):
+        span = hi - lo
+        free = span > 0
+        t = jnp.clip((p - lo) / jnp.where(free, span, 1.0), 0.0, 1.0)
+        return jnp.where(free, t, 0.0)
+
+    unit = (jax.tree.map(jnp.zeros_like, lower),
+            jax.tree.map(lambda lo, hi: jnp.where(hi > lo, 1.0, 0.0).astype(lo.dtype),
+                         lower, upper))
+    return (lambda t: jax.tree.map(up, lower, upper, t),
+            lambda p: jax.tree.map(down, lower, upper, p), unit)
+
+
+def _run_lbfgsb(fn, params0, bounds, optimiser: LBFGSB, steps, record, callback):
+    """L-BFGS-B from ``params0`` (projected into the bounds: a copy, the input is not
+    touched), one compiled iteration at a time (an attempt whose line search fails
+    counts as one), on the parameters as fractions of their
+    ranges (:func:`_unit_box`) and on the objective divided by its start's largest
+    gradient component there, so that the first step (a projected gradient step: the
+    quasi-Newton matrix starts as the identity) can cross the whole box instead of a
+    length set by the objective's units. Stops after ``steps`` iterations, when the
+    projected gradient is within ``optimiser.tol`` (in the objective's own units per
+    unit range), when a line search fails right after a restart from the projected
+    gradient (no lower value along either step) or when ``callback`` returns True."""
+    to_params, to_unit, unit = _unit_box(bounds)
+
+    def scaled(t, scale):
+        val, aux = fn(to_params(t))
+        return val * scale, aux
+
+    solver = optimiser.solver(scaled)
+    t = to_unit(jax.tree.map(jnp.asarray, params0))
+    g0 = eqx.filter_jit(jax.grad(lambda t_: fn(to_params(t_))[0]))(t)
+    g_max = max((float(jnp.max(jnp.abs(g))) for g in jax.tree.leaves(g0)), default=0.0)
+    scale = jnp.asarray(1.0 / g_max if g_max > 0 else 1.0)
+    state = eqx.filter_jit(solver.init_state)(t, unit, scale)
+    extra = 1  # the gradient that set the scale
+
+    def report(t_, st):
+        p_ = to_params(t_)
+        record(p_, st.value / scale, st.aux, st.num_fun_eval + extra)
+        return p_
+
+    p = report(t, state)
+
+    @eqx.filter_jit
+    def step(t_, st):
+        return solver.update(t_, st, unit, scale)
+
+    def restart(st, counts):
+        """The state with the curvature memory dropped (the next step is a projected
+        gradient step again), keeping the evaluation counts of ``counts``."""
+        zeros = jax.tree.map(jnp.zeros_like, (st.s_history, st.y_history))
+        return st._replace(s_history=zeros[0], y_history=zeros[1],
+                           num_updates=jnp.zeros_like(st.num_updates),
+                           theta=jnp.ones_like(st.theta),
+                           stepsize=jnp.ones_like(st.stepsize),
+                           num_fun_eval=counts.num_fun_eval,
+                           num_grad_eval=counts.num_grad_eval)
+
+    restarted = False
+    for i in range(steps):
+        t_new, new = step(t, state)
+        if bool(new.failed_linesearch) and not float(new.value) < float(state.value):
+            # no lower value along the quasi-Newton direction: once, drop the memory
+            # and try the projected gradient; twice in a row, stop
+            if restarted:
+                break
+            state, restarted = restart(state, new), True
+            continue
+        t, state, restarted = t_new, new, False
+        p = report(t, state)
+        if callback is not None and callback(i, p, float(state.value / scale), state.aux):
+            break
+        if float(state.error) / float(scale) <= optimiser.tol:
+            break
+    return p
 
 
 def _run_optax(loss, u, optimiser, steps, record, callback, to_params):
@@ -582,7 +797,8 @@ def _run_optimistix(loss, u, solver, steps, record, callback, to_params):
 
 
 __all__ = [
-    "PSFSetup", "IrisParams", "IrisFamily", "Box", "DesignResult", "design",
+    "PSFSetup", "IrisParams", "IrisFamily", "Box", "DesignResult", "design", "LBFGSB",
+    "OPTIMISERS", "optimiser_kind",
     "convexity_bound", "wedge_weights", "spike_energy", "halo_anisotropy", "core_energy", "angular_profile",
     "spike_profile", "spike_length", "bokeh_nonuniformity", "image_mismatch",
 ]

@@ -15,7 +15,9 @@ Designs: straight blades; curved blades (the curvature optimised within
 [0, --max-curvature]); curved blades with the vertices also moved (|radial|, |angular| ≤
 --vertex-bound, convexity guaranteed); the disc of the same area for reference. The
 objective is the halo anisotropy (spike energy whatever the direction) plus
---bokeh-weight × the bokeh coefficient of variation.
+--bokeh-weight × the bokeh coefficient of variation. --optimiser adam (the default: Adam
+on sigmoid-unconstrained values) or lbfgsb (bound-constrained L-BFGS-B in the bounded
+parameters themselves).
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ MAX_BOKEH_WEIGHT = 1e6
 #: the study's flags by their Python names (``iris_study``'s keywords)
 STUDY_FLAGS = {"blades": "--blades", "f_number": "--f-number", "steps": "--steps",
                "max_curvature": "--max-curvature", "vertex_bound": "--vertex-bound",
-               "bokeh_weight": "--bokeh-weight"}
+               "bokeh_weight": "--bokeh-weight", "optimiser": "--optimiser"}
 
 
 def check_f_number(f_number, field: str = "f_number") -> float:
@@ -63,12 +65,12 @@ def check_f_number(f_number, field: str = "f_number") -> float:
 
 def check_study_args(*, blades=9, f_number=8.0, steps=None, max_curvature=0.6,
                      vertex_bound=0.015, bokeh_weight=0.0, learning_rate=0.1,
-                     names: dict | None = None) -> dict:
+                     optimiser="adam", names: dict | None = None) -> dict:
     """The study's arguments checked (each alone, then the curvature and vertex bounds
     together: every iris they allow must be convex), before anything is computed;
     :class:`InputError` names the argument (``names``: Python name → what to call it,
     e.g. :data:`STUDY_FLAGS`) and the fix. Returns them as numbers."""
-    from difstar._design import convexity_bound
+    from difstar._design import OPTIMISERS, convexity_bound
     from difstar._validate import MAX_BLADES, InputError, check_number
 
     n = {k: k for k in (*STUDY_FLAGS, "learning_rate")} | dict(names or {})
@@ -87,7 +89,12 @@ def check_study_args(*, blades=9, f_number=8.0, steps=None, max_curvature=0.6,
                                      le=MAX_BOKEH_WEIGHT,
                                      fix="0 optimises the spikes alone"),
         "learning_rate": check_number(learning_rate, n["learning_rate"], gt=0),
+        "optimiser": optimiser,
     }
+    if not (isinstance(optimiser, str) and optimiser in OPTIMISERS):
+        raise InputError(f"{n['optimiser']}: {optimiser!r} is not one of "
+                         f"{', '.join(OPTIMISERS)}; give adam (Adam on the unconstrained "
+                         "values, the default) or lbfgsb (L-BFGS-B within the bounds).")
     nb, mc, vb = out["blades"], out["max_curvature"], out["vertex_bound"]
 
     def margin(v):
@@ -175,34 +182,12 @@ def measures_fn(family, setup, opts):
     return values
 
 
-def measure(family, setup, params, opts) -> dict:
-    """Every reported measure of one design (concrete floats), with its focused and
-    defocused PSFs and its outline."""
-    import equinox as eqx
+def study_objective(family, setup, opts, *, bokeh_weight: float = 0.0):
+    """The study's objective ``params → (value, {"halo_anisotropy", ["bokeh_cv"]})``:
+    the halo anisotropy of the focused PSF plus ``bokeh_weight`` × the defocused
+    highlight's coefficient of variation."""
+    from difstar._design import bokeh_nonuniformity, halo_anisotropy
 
-    out, img, bok, outline = eqx.filter_jit(measures_fn(family, setup, opts))(params)
-    return {k: float(v) for k, v in out.items()}, img, bok, outline
-
-
-def iris_study(
-    *, blades: int = 9, f_number: float = 8.0, quick: bool = False,
-    steps: int | None = None, max_curvature: float = 0.6, vertex_bound: float = 0.015,
-    bokeh_weight: float = 0.0, learning_rate: float = 0.1, log=_log,
-) -> dict:
-    """Run the worked study; returns the rows, histories, PSFs and pupils (no files)."""
-    import numpy as np
-    import optax
-
-    from difstar._design import bokeh_nonuniformity, design, halo_anisotropy
-
-    a = check_study_args(blades=blades, f_number=f_number, steps=steps,
-                         max_curvature=max_curvature, vertex_bound=vertex_bound,
-                         bokeh_weight=bokeh_weight, learning_rate=learning_rate)
-    blades, f_number = a["blades"], a["f_number"]
-    family, setup, opts = study_setup(blades=blades, f_number=f_number, quick=quick)
-    steps = (12 if quick else 60) if a["steps"] is None else a["steps"]
-    max_curvature, vertex_bound = a["max_curvature"], a["vertex_bound"]
-    bokeh_weight, learning_rate = a["bokeh_weight"], a["learning_rate"]
     rb = setup.blur_radius(family.area)
 
     def objective(p):
@@ -215,29 +200,81 @@ def iris_study(
             value = value + bokeh_weight * b
         return value, aux
 
+    return objective
+
+
+def study_start(family, curvature, vertex_bound: float):
+    """The study's start for the vertex design: ``curvature``, the vertices moved by a
+    tenth of ``vertex_bound`` off the symmetric point, whose gradient in the vertices
+    vanishes by symmetry."""
+    import numpy as np
+
+    k = np.arange(family.n)
+    return family.params(curvature, radial=0.1 * vertex_bound * np.sin(2.3 * k),
+                         angular=0.1 * vertex_bound * np.cos(1.7 * k))
+
+
+def measure(family, setup, params, opts) -> dict:
+    """Every reported measure of one design (concrete floats), with its focused and
+    defocused PSFs and its outline."""
+    import equinox as eqx
+
+    out, img, bok, outline = eqx.filter_jit(measures_fn(family, setup, opts))(params)
+    return {k: float(v) for k, v in out.items()}, img, bok, outline
+
+
+def iris_study(
+    *, blades: int = 9, f_number: float = 8.0, quick: bool = False,
+    steps: int | None = None, max_curvature: float = 0.6, vertex_bound: float = 0.015,
+    bokeh_weight: float = 0.0, learning_rate: float = 0.1, optimiser: str = "adam",
+    log=_log,
+) -> dict:
+    """Run the worked study; returns the rows, histories, PSFs and pupils (no files).
+
+    optimiser: ``"adam"`` (``optax.adam(learning_rate)`` on the sigmoid-unconstrained
+    values) or ``"lbfgsb"`` (:class:`difstar._design.LBFGSB` within the bounds;
+    ``learning_rate`` unused); ``steps`` iterations either way (L-BFGS-B may stop
+    sooner)."""
+    import numpy as np
+    import optax
+
+    from difstar._design import design
+
+    a = check_study_args(blades=blades, f_number=f_number, steps=steps,
+                         max_curvature=max_curvature, vertex_bound=vertex_bound,
+                         bokeh_weight=bokeh_weight, learning_rate=learning_rate,
+                         optimiser=optimiser)
+    blades, f_number = a["blades"], a["f_number"]
+    family, setup, opts = study_setup(blades=blades, f_number=f_number, quick=quick)
+    steps = (12 if quick else 60) if a["steps"] is None else a["steps"]
+    max_curvature, vertex_bound = a["max_curvature"], a["vertex_bound"]
+    bokeh_weight, learning_rate = a["bokeh_weight"], a["learning_rate"]
+    rb = setup.blur_radius(family.area)
+    objective = study_objective(family, setup, opts, bokeh_weight=bokeh_weight)
+
+    def opt():
+        return optax.adam(learning_rate) if a["optimiser"] == "adam" else a["optimiser"]
+
     designs = {"straight": family.params(0.0)}
     histories = {}
+    evaluations = {}
     t0 = time.perf_counter()
     box = family.bounds(curvature=(0.0, max_curvature))
-    log(f"difstar design: optimising the curvature ({steps} steps) ...")
+    log(f"difstar design: optimising the curvature ({steps} {a['optimiser']} steps) ...")
     res = design(objective, family.params(0.5 * max_curvature), constraints=box,
-                 optimiser=optax.adam(learning_rate), steps=steps)
+                 optimiser=opt(), steps=steps)
     designs["curved"] = res.best_params
     histories["curved"] = res.history["value"]
+    evaluations["curved"] = int(res.history["evaluations"][-1])
     box = family.bounds(curvature=(0.0, max_curvature), radial=vertex_bound,
                         angular=vertex_bound)
-    log(f"difstar design: optimising curvature and vertices ({steps} steps) ...")
-    start = family.params(res.best_params.curvature, radial=0.0, angular=0.0)
-    # start off the symmetric point, whose gradient in the vertices vanishes by symmetry
-    k = np.arange(blades)
-    start = family.params(
-        start.curvature, radial=0.1 * vertex_bound * np.sin(2.3 * k),
-        angular=0.1 * vertex_bound * np.cos(1.7 * k),
-    )
-    res2 = design(objective, start, constraints=box, optimiser=optax.adam(learning_rate),
-                  steps=steps)
+    log(f"difstar design: optimising curvature and vertices ({steps} {a['optimiser']} "
+        "steps) ...")
+    start = study_start(family, res.best_params.curvature, vertex_bound)
+    res2 = design(objective, start, constraints=box, optimiser=opt(), steps=steps)
     designs["curved+vertices"] = res2.best_params
     histories["curved+vertices"] = res2.history["value"]
+    evaluations["curved+vertices"] = int(res2.history["evaluations"][-1])
     designs["disc (reference)"] = family.params(1.0)
     t_opt = time.perf_counter() - t0
     rows = {}
@@ -256,13 +293,14 @@ def iris_study(
             "defocus_m": setup.defocus, "blur_diameter_px": 2 * rb,
             "airy_scale_px": setup.airy_scale(family.area), "steps": steps,
             "max_curvature": max_curvature, "vertex_bound": vertex_bound,
-            "bokeh_weight": bokeh_weight, "learning_rate": learning_rate, **opts,
-            "quick": quick,
+            "bokeh_weight": bokeh_weight, "learning_rate": learning_rate,
+            "optimiser": a["optimiser"], **opts, "quick": quick,
         },
         "rows": rows,
         "params": {k: {"curvature": float(v.curvature), "radial": np.asarray(v.radial),
                        "angular": np.asarray(v.angular)} for k, v in designs.items()},
         "histories": histories,
+        "evaluations": evaluations,
         "psfs": psfs,
         "outlines": outlines,
         "optimise_s": t_opt,
@@ -629,7 +667,8 @@ def plot_study(result: dict, path_prefix: Path) -> list[str]:
 
 #: the study's defaults for the flags a sweep does not take (None on the command line:
 #: given or not can then be told apart)
-STUDY_DEFAULT_ARGS = {"max_curvature": 0.6, "vertex_bound": 0.015, "bokeh_weight": 0.0}
+STUDY_DEFAULT_ARGS = {"max_curvature": 0.6, "vertex_bound": 0.015, "bokeh_weight": 0.0,
+                      "optimiser": "adam"}
 
 
 def _read_sweep_file(path: Path, *, blades: int) -> list[dict]:
@@ -767,7 +806,8 @@ def _cmd_design(a) -> int:
             raise RuntimeError(f"design rows {bad} hold NaN or infinity; nothing was written")
         md = table_markdown(result["rows"])
         (tmp / "table.md").write_text(md)
-        doc = {k: result[k] for k in ("config", "rows", "params", "histories")}
+        doc = {k: result[k] for k in ("config", "rows", "params", "histories",
+                                      "evaluations")}
         doc["timing_s"] = {"optimise": result["optimise_s"], "total": wall}
         write_json(tmp / "study.json", doc)
         plot_study(result, tmp)
@@ -778,7 +818,8 @@ def _cmd_design(a) -> int:
 
 
 def register(subparsers, name: str) -> None:
-    from difstar._validate import MAX_BLADES, _arg_type
+    from difstar._cli_args import arg_type as _arg_type
+    from difstar._validate import MAX_BLADES
 
     p = subparsers.add_parser(
         name, help="aperture design study: spikes vs bokeh for curved iris blades",
@@ -806,6 +847,10 @@ def register(subparsers, name: str) -> None:
     p.add_argument("--bokeh-weight", type=_arg_type("weight", ge=0, le=MAX_BOKEH_WEIGHT),
                    help=f"weight of the bokeh CV in the objective, 0 to {MAX_BOKEH_WEIGHT:g} "
                    f"(0: spikes only) (default: {STUDY_DEFAULT_ARGS['bokeh_weight']:g})")
+    p.add_argument("--optimiser", metavar="NAME",
+                   help="adam: Adam on sigmoid-unconstrained values (the default); "
+                   "lbfgsb: L-BFGS-B (jaxopt) in the bounded parameters themselves, "
+                   "which can stop early and puts parameters exactly on their bounds")
     p.add_argument("--overwrite", action="store_true",
                    help="replace --out if it is a folder difstar made (never one holding "
                    "other files)")
@@ -813,8 +858,8 @@ def register(subparsers, name: str) -> None:
                    help="instead of the study, measure every design of FILE (JSON, "
                    "data_schemas/design_sweep.schema.json) at once; writes sweep.json and "
                    "sweep.md (--blades, --f-number and --quick apply; nothing is optimised, "
-                   "so --steps, --max-curvature, --vertex-bound and --bokeh-weight are "
-                   "refused)")
+                   "so --steps, --max-curvature, --vertex-bound, --bokeh-weight and "
+                   "--optimiser are refused)")
     p.add_argument("--sweep-curvature", nargs=3, metavar=("LO", "HI", "N"),
                    help="a sweep of N designs, curvature evenly from LO to HI (in [0, 1]), "
                    f"straight-cut vertices, N at most {MAX_SWEEP_DESIGNS}; with --sweep, "
