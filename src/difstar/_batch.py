@@ -1152,7 +1152,7 @@ class FitBatcher:
         return req["out"]
 
     def run(self, jobs: list[Callable]):
-        from ._fit import SolveResult
+        from ._lm import SolveResult
 
         results: list[Any] = [None] * len(jobs)
         errors: list[BaseException | None] = [None] * len(jobs)

@@ -846,7 +846,7 @@ def _print_summary(result: dict) -> None:
 
 
 def register(subparsers, name: str) -> None:
-    from difstar._validate import nonnegative_int, positive_int
+    from difstar._cli_args import nonnegative_int, positive_int
 
     if name == "synth":
         p = subparsers.add_parser("synth", help="write synthetic DNG captures for a fit manifest")

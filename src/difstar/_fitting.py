@@ -345,7 +345,7 @@ class FitData:
 
     @staticmethod
     def from_file(path, **kw) -> FitData:
-        from .io import read_image
+        from .io._images import read_image
 
         im = read_image(path)
         kw.setdefault("pixel_scale", im.pixel_scale)
@@ -371,8 +371,7 @@ class FitData:
         ``pixel_scale``: arcsec per pixel (pitch / focal length). ``exposure`` and
         ``light``: as for :meth:`from_array` (the channel's band)."""
         from ._cfa import channel_index
-        from .io import read_raw
-        from .io._raw import RawCapture
+        from .io._raw import RawCapture, read_raw
 
         cap = raw if isinstance(raw, RawCapture) else read_raw(raw)
         if channel not in ("R", "G", "B"):
@@ -2392,7 +2391,7 @@ def resolve_data_path(path: str, manifest_dir, *, field: str | None = None,
 
 def _read_at(file: str, field: str, source: str):
     """:func:`difstar.io.read_image` of ``file``, its errors naming the manifest's field."""
-    from .io import read_image
+    from .io._images import read_image
 
     try:
         return read_image(file)
@@ -2593,7 +2592,7 @@ def _known_keys(man: Mapping, src: str) -> None:
     """A key the manifest's schema does not know, in an object with a fixed set of keys
     (a typo would otherwise be refused by the schema without the keys it knows, or passed
     over): refused naming its field and the known keys."""
-    from .io._scene import load_schema
+    from .io._json import load_schema
 
     schema = load_schema("image_fit_manifest")
     props, defs = schema["properties"], schema["$defs"]
@@ -2736,7 +2735,7 @@ def load_manifest(path):
     naming the manifest and the field, before anything is computed."""
     from pathlib import Path
 
-    from .io._scene import SceneError, read_json, validate
+    from .io._json import SceneError, read_json, validate
 
     path = Path(path)
     src = str(path)

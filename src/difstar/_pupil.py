@@ -342,7 +342,7 @@ def _check_ccw_simple(v: np.ndarray, name: str) -> None:
 def _check_build_count(count, field: str, what: str) -> None:
     """At most ``MAX_BUILD_EDGES`` vertices / blades / vanes when a pupil is built (a
     static count; difstar.psf and simulate take at most ``MAX_EDGES`` per outline)."""
-    from ._validate import MAX_BUILD_EDGES, check_edge_count
+    from ._limits import MAX_BUILD_EDGES, check_edge_count
 
     check_edge_count(int(count), field, what, most=MAX_BUILD_EDGES)
 

@@ -23,6 +23,7 @@ from ._sampling_rules import (
     engine_psf_shape,
     needs_defocus,
     pupil_window_for,
+    scene_extent,
     source_window_for,
 )
 
@@ -55,20 +56,6 @@ def required_oversample(camera: Camera, scene: Scene) -> int:
     nw = float(g.z_exit_pupil) / (2 * r)
     lam = float(jnp.min(camera.sensor.wavelengths))
     return max(1, math.ceil(camera.sensor.pixel_pitch / (lam * nw) - 1e-9))
-
-
-def scene_extent(camera: Camera, scene: Scene) -> dict:
-    """Sizes on the sensor, in pixels: the object's image radius (including its offset),
-    the geometric blur diameter and the PSF's core scale λ N_w."""
-    g = geometry_of(camera, scene)
-    p = camera.sensor.pixel_pitch
-    m = abs(float(g.magnification))
-    obj = max(
-        (float(jnp.hypot(*s.position)) + float(s.radius)) * m / p for s in scene.sources
-    )
-    r = float(camera.lens.pupil.max_radius())
-    blur = 2 * r * abs(float(g.defocus)) / float(g.z_in_focus) / p
-    return {"object_radius_px": obj, "blur_diameter_px": blur}
 
 
 def padding_for_accuracy(accuracy: float | None) -> float:

@@ -34,6 +34,20 @@ def _concrete(x):
         return None
 
 
+def scene_extent(camera: Camera, scene: Scene) -> dict:
+    """Sizes on the sensor, in pixels: the object's image radius (including its offset),
+    the geometric blur diameter and the PSF's core scale λ N_w."""
+    g = geometry_of(camera, scene)
+    p = camera.sensor.pixel_pitch
+    m = abs(float(g.magnification))
+    obj = max(
+        (float(jnp.hypot(*s.position)) + float(s.radius)) * m / p for s in scene.sources
+    )
+    r = float(camera.lens.pupil.max_radius())
+    blur = 2 * r * abs(float(g.defocus)) / float(g.z_in_focus) / p
+    return {"object_radius_px": obj, "blur_diameter_px": blur}
+
+
 def sampling_report(
     *,
     pupil_radius,
@@ -205,8 +219,6 @@ def check_sampling(camera: Camera, scene: Scene, grid: Grid) -> None:
                 f"use pupil_window >= {need}, or 0 for the whole grid."
             )
     if grid.method == "fft" and 0 < grid.source_window < grid.n:
-        from ._sampling import scene_extent
-
         need_w = source_window_for(scene_extent(camera, scene)["object_radius_px"])
         if need_w > grid.source_window:
             fails.append(

@@ -35,48 +35,24 @@ from typing import Any
 
 import numpy as np
 
-#: deepest JSON nesting a difstar document needs (scene files: 6; manifests: 5)
-MAX_JSON_DEPTH = 32
-#: crop sizes (pixels a side) accepted by the command line and ``choose_grid``
-MIN_CROP = 8
-#: at most this many polygon vertices / iris blades / spider vanes: more are almost
-#: certainly a mistake, and compile for minutes (on a 2-core CPU, a 16 px in-focus
-#: prediction compiles in 10 s with 64 vertices, 16 s with 128, 66 s with 256 blades,
-#: and exhausts memory with 1024 vertices)
-MAX_VERTICES = 256
-MAX_BLADES = 64
-MAX_SPIDERS = 64
-#: at most this many wavelengths in one PSF or simulation (each is a PSF evaluation;
-#: the same bound as scene files'): difstar.psf's ``wavelength``, a spectral sensor's K,
-#: choose_wavelengths' ``max_wavelengths``
-MAX_WAVELENGTHS = 1024
-#: the most disc sources a scene may hold (each is rasterised over the whole window)
-MAX_SOURCES = 1024
-#: at most this many straight edges in one outline that difstar.psf / simulate take
-#: (Polygon vertices, RegularPolygon.n, CurvedIris.n × segments, vanes): the closed form
-#: costs time and memory per edge (1024 edges: 15 s and 1 GB for a 32 × 32 px window on
-#: a 2-core CPU; 4096: 53 s, 2.8 GB), and a regular polygon of 1024 edges is a circle to
-#: 5e-6 of its radius, which Circle gives at a fraction of the cost
-MAX_EDGES = 1024
-#: the closed form (method "exact") is unrolled edge by edge, so its compile time and
-#: memory grow with the edges (a jitted 16 px in-focus simulate: 9 s and 0.6 GB with 64
-#: edges, 65 s and 2.5 GB with 256): above this many edges difstar.psf and choose_grid
-#: sample the pupil instead (whose cost does not grow with them), and method="exact" is
-#: refused
-MAX_EXACT_EDGES = 256
-#: at most this many vertices / blades / vanes when a pupil is built (Polygon's check
-#: that it is simple costs O(n²): 2 s for 4096 vertices)
-MAX_BUILD_EDGES = 4096
-#: at most this many samples in a tabulated spectrum or a dense wavelength grid (NumPy
-#: tables, not PSFs: cheap, but not unbounded)
-MAX_SPECTRUM_SAMPLES = 100_000
-#: the environment variable that caps the memory difstar plans for
-ENV_MEMORY_LIMIT = "DIFSTAR_MEMORY_LIMIT"
-
-
-class InputError(ValueError):
-    """Invalid user input; the message names the field and the fix."""
-
+# the sizes accepted and the error type live below the pupils (which count their edges
+# when built); they are re-exported here (__all__)
+from ._limits import (
+    ENV_MEMORY_LIMIT,
+    MAX_BLADES,
+    MAX_BUILD_EDGES,
+    MAX_EDGES,
+    MAX_EXACT_EDGES,
+    MAX_JSON_DEPTH,
+    MAX_SOURCES,
+    MAX_SPECTRUM_SAMPLES,
+    MAX_SPIDERS,
+    MAX_VERTICES,
+    MAX_WAVELENGTHS,
+    MIN_CROP,
+    InputError,
+    check_edge_count,
+)
 
 # ----------------------------------------------------------------------------- JSON
 
@@ -627,15 +603,6 @@ def check_wavelength_count(count: int, field: str) -> None:
         )
 
 
-def check_edge_count(count: int, field: str, what: str, *, most: int = MAX_EDGES) -> None:
-    """At most ``most`` (default :data:`MAX_EDGES`) straight edges / blades / vanes."""
-    if count > most:
-        why = ("telescopes have a handful" if what in ("vanes", "struts") else
-               f"a regular polygon of that many edges is a circle to "
-               f"{1 - math.cos(math.pi / most):.1g} of its radius: use Circle")
-        raise InputError(f"{field}: {count} {what}; give at most {most} ({why}).")
-
-
 def _outline_counts(pupil, field: str):
     """(field, count, what) for every outline or vane set in ``pupil`` (static shapes
     only: works on traced pupils)."""
@@ -683,38 +650,6 @@ def fmt_bytes(b) -> str:
     return f"{b:.0f} bytes"
 
 
-# ------------------------------------------------------------- command-line types
-
-
-def _arg_type(name: str, **limits):
-    """An argparse ``type``: a finite number within ``limits`` (message names the
-    limit; argparse adds the option's name)."""
-    integer = limits.pop("integer", False)
-
-    def parse(text: str):
-        import argparse
-
-        try:
-            v = int(text) if integer else float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"{text!r} is not {'an integer' if integer else 'a number'}") from None
-        try:
-            return check_number(v, "value", integer=integer, **limits)
-        except InputError as exc:
-            raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[1]) from None
-
-    parse.__name__ = name
-    return parse
-
-
-positive_int = _arg_type("positive_int", integer=True, ge=1)
-nonnegative_int = _arg_type("nonnegative_int", integer=True, ge=0)
-finite_float = _arg_type("finite_float")
-positive_float = _arg_type("positive_float", gt=0)
-nonnegative_float = _arg_type("nonnegative_float", ge=0)
-
-
 __all__ = [
     "ENV_MEMORY_LIMIT", "InputError", "MAX_BLADES", "MAX_BUILD_EDGES", "MAX_EDGES",
     "MAX_EXACT_EDGES",
@@ -723,7 +658,6 @@ __all__ = [
     "check_camera_scene", "check_crop", "check_edge_count", "check_finite_doc",
     "check_memory", "check_number", "check_obstruction", "check_polygon_vertices",
     "check_psf_inputs", "check_pupil", "check_pupil_cost", "check_shape",
-    "check_wavelength_count", "finite_float", "fmt_bytes", "json_depth", "loads_strict",
-    "memory_budget", "memory_limit_from_env", "nonnegative_float", "nonnegative_int",
-    "parse_memory_limit", "positive_float", "positive_int", "refuse_nonfinite_traced",
+    "check_wavelength_count", "fmt_bytes", "json_depth", "loads_strict",
+    "memory_budget", "memory_limit_from_env", "parse_memory_limit", "refuse_nonfinite_traced",
 ]
