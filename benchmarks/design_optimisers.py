@@ -35,8 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from difstar._design import design, image_mismatch
-from difstar._design_cli import study_objective, study_setup, study_start
+from difstar import design, image_mismatch
+from difstar.design_study import study_objective, study_setup, study_start
 
 
 def problems(family, setup, opts):

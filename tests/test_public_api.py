@@ -112,10 +112,15 @@ def code_blocks(path: Path) -> list[tuple[int, str]]:
 def outside_files() -> list[Path]:
     """The repository's .py, .ipynb and .md files (tracked, or new and not ignored) outside
     src/ and tests/."""
-    out = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"],
-                         cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    try:
+        out = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"],
+                             cwd=ROOT, capture_output=True, text=True, check=True).stdout
+        names = out.split()
+    except (OSError, subprocess.CalledProcessError):  # not a git checkout (an sdist, a copy)
+        names = [str(p.relative_to(ROOT)) for p in ROOT.rglob("*")
+                 if not any(part.startswith(".") for part in p.relative_to(ROOT).parts)]
     files = []
-    for rel in sorted(set(out.split())):
+    for rel in sorted(set(names)):
         p = ROOT / rel
         if (p.suffix in (".py", ".ipynb", ".md") and p.is_file()
                 and p.relative_to(ROOT).parts[0] not in ("src", "tests")):
