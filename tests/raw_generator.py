@@ -23,8 +23,9 @@ difstar's model makes one:
   integration, no sinc model).
 * **Source**: a uniform disc of radius r_s in the object plane, its geometric image a
   disc of radius |M|·r_s drawn by sub-pixel point tests, convolved with the intensity.
-* **Radiometry**: irradiance ∝ L·A/z_R² (A the pupil's area): a change of focus changes
-  the signal as in a camera.
+* **Radiometry**: the geometric image's irradiance is L·A/z_R² (A the pupil's area,
+  L = 1) over the disc's image of radius |M|·r_s: a change of aperture changes the
+  signal as in a camera, and a change of focus spreads the same power differently.
 * **Sensor**: linear photo-electrons (Poisson), Gaussian read noise, offset by a black
   level, quantised to DN and clipped at the white level; its own Bayer layout.
 
@@ -65,7 +66,7 @@ class Sensor:
     pattern: str = "GBRG"
     wavelengths: tuple = (610e-9, 535e-9, 460e-9)
     # photo-electrons per unit of relative irradiance × second, per channel
-    quantum_scale: tuple = (9.0e8, 1.2e9, 7.0e8)
+    quantum_scale: tuple = (3.6e18, 4.8e18, 2.8e18)
     gain_e_per_dn: float = 1.5
     read_noise_dn: float = 2.5
     black_level: int = 512
@@ -145,7 +146,7 @@ def inside_iris(iris: Iris, x: np.ndarray, y: np.ndarray) -> np.ndarray:
             if c > 0:
                 caps |= in_circle & beyond
             else:
-                cut |= ~in_circle & ~beyond
+                cut |= in_circle & ~beyond
     return (inside & ~cut) | caps
 
 
@@ -207,8 +208,8 @@ def intensity(iris: Iris, *, wavelength: float, z_r: float, z_i: float,
 
 def disc_image(radius: float, shape, centre_rc, *, spacing: float, supersample: int = 4
                ) -> np.ndarray:
-    """Coverage of a disc of ``radius`` (metres on the sensor) centred at ``centre_rc``
-    (sample units) on a grid of ``spacing``, by point tests; normalised to sum 1."""
+    """Coverage (0…1) of each cell of a grid of ``spacing`` by a disc of ``radius``
+    (metres on the sensor) centred at ``centre_rc`` (sample units), by point tests."""
     h, w = shape
     sub = (np.arange(supersample) + 0.5) / supersample - 0.5
     r0, c0 = centre_rc
@@ -216,16 +217,17 @@ def disc_image(radius: float, shape, centre_rc, *, spacing: float, supersample: 
     cc = (np.arange(w)[:, None] + sub[None, :]).ravel() - c0
     inside = (rr[:, None] ** 2 + cc[None, :] ** 2) * spacing ** 2 <= radius ** 2
     cov = inside.reshape(h, supersample, w, supersample).mean(axis=(1, 3))
-    s = cov.sum()
-    if s == 0:  # smaller than a sample: a point
-        cov[int(round(r0)), int(round(c0))] = 1.0
-        s = 1.0
-    return cov / s
+    if not cov.any():
+        raise ValueError(f"the source's image (radius {radius:.3g} m) is smaller than a "
+                         f"sample ({spacing:.3g} m); use a finer pixel_supersample")
+    return cov
 
 
 def channel_image(camp: Campaign, cfg: Configuration, channel: int) -> np.ndarray:
-    """Relative irradiance × pixel area on the frame's pixels for one colour channel:
-    (A/z_R²) · (disc image ⊛ intensity), integrated over each pixel."""
+    """The power reaching each of the frame's pixels for one colour channel, from a disc
+    of unit radiance: irradiance A/z_R² over the disc's geometric image, spread by the
+    intensity, integrated over each pixel (so the total is A·π r_s²/d² whatever the
+    focus, d the source's distance from the pupil, as it must be).""" 
     g = lens_geometry(camp.lens, cfg.focus_distance, cfg.object_distance)
     s, n = camp.pixel_supersample, camp.fft_size
     sen = camp.sensor
@@ -247,7 +249,8 @@ def channel_image(camp: Campaign, cfg: Configuration, channel: int) -> np.ndarra
     img = np.roll(img, (int(rs) - n // 2, int(cs) - n // 2), axis=(0, 1))
     img = img[: h * s, : w * s]
     pix = img.reshape(h, s, w, s).sum(axis=(1, 3))
-    return pix * iris_area(camp.iris) / g["z_R"] ** 2
+    # irradiance L·A/z_R² (L = 1) over the disc's image, times each sample's area
+    return pix * iris_area(camp.iris) / g["z_R"] ** 2 * (sen.pixel_pitch / s) ** 2
 
 
 def cfa_channel(pattern: str, shape) -> np.ndarray:
