@@ -5,7 +5,7 @@ Every case runs the command line in-process (``difstar.cli.main``) on a tiny syn
 star (a 32 × 32 Gaussian, nothing compiled: every refusal comes before any model is
 computed) and asserts: exit status 2 with one line ``difstar: error: ...`` naming the
 manifest's field, no traceback, the input folder unchanged and ``--out`` not created. The
-Python API's own refusals (:func:`difstar._fitting.fit`) come before any solving. A
+Python API's own refusals (:func:`difstar.fitting.fit`) come before any solving. A
 property-based test throws non-finite, out-of-range and junk values into every numeric
 field of the manifest: a clean refusal naming a field, never another exception.
 """
@@ -27,7 +27,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_bad_input import numeric_leaves, run, snapshot
 
-from difstar._fitting import FitInputError
+from difstar.fitting import FitInputError
 from difstar.io._scene import SceneError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -141,7 +141,7 @@ def work(tmp_path, monkeypatch):
 def test_the_base_manifest_loads(work):
     """The cases below differ from a manifest that loads: its auto values found, every
     file it reads listed in ``inputs``."""
-    from difstar._fitting import load_manifest
+    from difstar.fitting import load_manifest
 
     model, data, opts = load_manifest(write_case(work))
     assert data.image.shape == (32, 32) and data.mask.all()
@@ -351,7 +351,7 @@ def test_nan_border_is_masked_and_the_auto_values_found(tmp_path):
     """A border of NaN (common in FITS) is left out of the fit with a warning; the
     automatic background, flux and position come from the finite pixels (was: "Param
     value must be finite" about ``background: auto``)."""
-    from difstar._fitting import load_manifest
+    from difstar.fitting import load_manifest
 
     img = star()
     img[:3], img[-3:], img[:, :4], img[:, -4:] = np.nan, np.nan, np.nan, np.inf
@@ -366,7 +366,7 @@ def test_nan_border_is_masked_and_the_auto_values_found(tmp_path):
 
 
 def test_inputs_lists_every_file_read(tmp_path):
-    from difstar._fitting import load_manifest
+    from difstar.fitting import load_manifest
 
     np.save(tmp_path / "star2.npy", star(seed=1))
     np.save(tmp_path / "sig.npy", np.full((32, 32), 0.5))
@@ -383,7 +383,7 @@ def test_inputs_lists_every_file_read(tmp_path):
 def test_every_image_fit_manifest_in_the_repository_is_valid():
     """Every fit-image manifest in the repository (fit/**, tests, notebooks: a JSON file
     with a pupil builder) validates against the tightened schema and loads."""
-    from difstar._fitting import load_manifest
+    from difstar.fitting import load_manifest
     from difstar.io._scene import read_json, validate
 
     found = [p for p in REPO.rglob("*.json")
@@ -400,7 +400,7 @@ def test_every_image_fit_manifest_in_the_repository_is_valid():
 
 
 def _api_case():
-    from difstar._fitting import FitData, ImageModel, Light, Param, obstructed_circle_pupil
+    from difstar.fitting import FitData, ImageModel, Light, Param, obstructed_circle_pupil
 
     model = ImageModel(obstructed_circle_pupil(0.425),
                        {"pixel_scale": Param(1.2), "x0": Param(0.3, True, (-2, 2)),
@@ -434,20 +434,21 @@ API_BAD = [
 def test_fit_refuses_a_bad_stage_before_solving(monkeypatch, later, match):
     """fit() finds a later stage's mistake before the first stage solves (the solver is
     replaced by one that fails the test)."""
-    import difstar._fitting as fitting
+    import difstar.fitting._analysis as analysis
+    import difstar.fitting._procedure as procedure
 
     def never(*a, **k):
         raise AssertionError("the fit started before refusing its input")
 
-    monkeypatch.setattr(fitting, "_one_fit", never)
-    monkeypatch.setattr(fitting, "chi2_slice", never)
+    monkeypatch.setattr(procedure, "_one_fit", never)
+    monkeypatch.setattr(analysis, "chi2_slice", never)
     model, data = _api_case()
     with pytest.raises(FitInputError, match=re.escape(match)):
-        fitting.fit(model, data, stages=[{"free": ["x0", "y0"], "half": 6}] + later)
+        procedure.fit(model, data, stages=[{"free": ["x0", "y0"], "half": 6}] + later)
 
 
 def test_fit_refuses_bad_arguments_before_solving(monkeypatch):
-    import difstar._fitting as fitting
+    import difstar.fitting._procedure as fitting
 
     monkeypatch.setattr(fitting, "_one_fit", lambda *a, **k: pytest.fail("solved"))
     model, data = _api_case()
@@ -490,7 +491,7 @@ PROP = settings(max_examples=40, deadline=None,
 def prop_folder(tmp_path_factory):
     d = tmp_path_factory.mktemp("prop")
     np.save(d / "star.npy", star())
-    from difstar._fitting import load_manifest
+    from difstar.fitting import load_manifest
 
     (d / "ok.json").write_text(json.dumps(PROP_DOC))
     load_manifest(d / "ok.json")  # the document the values go into loads
@@ -501,7 +502,7 @@ def _load_or_refuse(folder: Path, doc) -> str | None:
     """load_manifest on ``doc`` written as JSON (NaN and Infinity as Python writes them):
     None when it loads, else the refusal's message, which must name the manifest and a
     field; any other exception fails the test."""
-    from difstar._fitting import load_manifest
+    from difstar.fitting import load_manifest
 
     p = folder / "m.json"
     p.write_text(json.dumps(doc))
@@ -555,7 +556,7 @@ def test_junk_or_missing_anywhere_is_a_clean_refusal(prop_folder, path, value):
     (dict(n=3, source=math.nan), "temperature in kelvin > 0"),
 ])
 def test_light_band_is_bounded_in_the_python_api(kw, match):
-    from difstar._fitting import FitInputError, Light
+    from difstar.fitting import FitInputError, Light
 
     with pytest.raises(FitInputError, match=match):
         Light.band(3e-6, 4e-6, **kw)

@@ -1,4 +1,4 @@
-"""The image-fitting API (difstar._fitting): recovery of known parameters from an image
+"""The image-fitting API (difstar.fitting): recovery of known parameters from an image
 made by an independent NumPy generator (FFT of a high-resolution anti-aliased raster of
 an obstructed circle with three struts, pixels integrated by a 4 × 4 midpoint rule),
 standard errors, messages for inputs that cannot be right, and the JWST campaign's
@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from difstar._fitting import (
+from difstar.fitting import (
     FitData,
     FitInputError,
     ImageModel,
@@ -266,7 +266,7 @@ def test_converges_from_rough_starts(synthetic):
     """From three starts with every free parameter within ± 20 % (of its bounds' half
     width where it starts at 0), the fit of the independent star lands on the same
     values, within a small fraction of their standard errors."""
-    from difstar._fitting import perturbed_starts
+    from difstar.fitting._analysis import perturbed_starts
 
     data, _ = synthetic
     model = _model()
@@ -322,7 +322,7 @@ def test_spike_profile_stage_recovers_the_rotation():
 def test_noise_from_residuals_recovers_read_noise_and_gain():
     """Known read noise and gain, drawn around a smooth star (the model): the estimate
     recovers both within 10 %, and σ comes from the model."""
-    from difstar._fitting import Noise, noise_from_residuals
+    from difstar.fitting import Noise, noise_from_residuals
 
     h = w = 121
     yy, xx = np.mgrid[0:h, 0:w]
@@ -344,7 +344,7 @@ def test_noise_from_residuals_with_the_datas_own_intensity():
     """``intensity="data"``: σ² = read² + I/gain + (floor·I)² with I the data's 3 × 3
     mean above the background (computed here pixel by pixel), not the model's; a wrong
     choice is refused."""
-    from difstar._fitting import noise_from_residuals
+    from difstar.fitting import noise_from_residuals
 
     h = w = 61
     yy, xx = np.mgrid[0:h, 0:w]
@@ -380,7 +380,7 @@ def test_relative_sigma_scales_with_the_star():
     """``relative``: σ² = (relative · P)² + (floor · I)² with P the brightest I; the same
     star k times brighter (above the same background) gets σ exactly k times larger, so
     its weights, relative to each other, are the same; bad fractions are refused."""
-    from difstar._fitting import noise_from_residuals
+    from difstar.fitting import noise_from_residuals
 
     h = w = 61
     yy, xx = np.mgrid[0:h, 0:w]
@@ -489,7 +489,7 @@ def test_repeat_reaches_the_fixed_point_of_alternating_stages():
 
 
 def test_fainter_copy_has_the_fainter_stars_noise():
-    from difstar._fitting import Noise, fainter_copy
+    from difstar.fitting import Noise, fainter_copy
 
     model = np.full((200, 200), 10.0)
     model[50:150, 50:150] = 410.0
@@ -520,7 +520,8 @@ def test_scan_puts_the_solver_in_the_right_basin(synthetic):
     assert res.stages[0]["scan"]["name"] == "rotation"
     # the grid is the multiples of the step: two starts inside one step choose the same
     # point (a rough start and the main fit then take the same basin)
-    from difstar._fitting import _PixelTarget, _scan
+    from difstar.fitting._analysis import _scan
+    from difstar.fitting._solve import _PixelTarget
 
     fixed = model.with_values({"rotation": 0.0})
     picks = [_scan(fixed, data, _PixelTarget(data),
@@ -849,7 +850,7 @@ def test_disc_transform_against_scipy():
     import jax
     import scipy.special as sp
 
-    from difstar._fitting import disc_transform
+    from difstar.fitting._model import disc_transform
 
     x = np.linspace(1e-6, 150.0, 20001)
     np.testing.assert_allclose(np.asarray(disc_transform(x)), 2 * sp.j1(x) / x, atol=5e-9)
@@ -889,7 +890,7 @@ def test_reject_outliers_masks_what_the_model_cannot_explain():
     neighbour's core beyond ``r_min`` are masked with their ± ``grow`` squares (cut at
     ``r_min``), a core pixel the model misses by as much is kept, every other pixel is
     kept, the input is not changed; options that cannot be right are refused."""
-    from difstar._fitting import reject_outliers
+    from difstar.fitting import reject_outliers
 
     clean = _numpy_star((41, 41), **TRUE)
     sigma = 2e-3 * clean.max()
@@ -978,7 +979,7 @@ def test_stage_keys_and_options_are_checked_before_any_fitting(synthetic):
             ({"hop": {"name": "rotation", "offsets": [1]}, "free": "all"}, "hop stage")):
         with pytest.raises(FitInputError, match=match):
             fit(_model(), data, stages=[{"free": "all", "max_steps": 1}, stage])
-    from difstar._fitting import _check_stage_keys  # from a manifest: any JSON value
+    from difstar.fitting._stages import _check_stage_keys  # from a manifest: any JSON value
 
     with pytest.raises(FitInputError, match="stage 1 must be a mapping"):
         _check_stage_keys(1, "all")
@@ -998,7 +999,7 @@ def test_lanczos_transfer_is_the_mean_of_resamplings(a):
     from PIL import Image
     from scipy.integrate import quad
 
-    from difstar._fitting import lanczos_kernel, lanczos_transfer
+    from difstar.fitting._model import lanczos_kernel, lanczos_transfer
 
     h = w = 41
     c, s = 20.0, 2.0
@@ -1177,9 +1178,10 @@ def test_incoherent_part_is_the_mean_over_segment_phasing_errors():
     import equinox as eqx
     import jax.numpy as jnp
 
-    from difstar._fitting import _PITCH, ARCSEC, PupilBuilder
     from difstar._psf import plan_psf, psf
     from difstar._pupil import hex_segment_centres, hex_segments
+    from difstar.fitting import PupilBuilder
+    from difstar.fitting._params import _PITCH, ARCSEC
 
     f2f, gap, lam, scale, f = 1.32, 0.007, 1e-6, 0.02, 0.35
 
@@ -1232,7 +1234,7 @@ def test_incoherent_part_jacobian_matches_finite_differences():
     import jax
     import jax.numpy as jnp
 
-    from difstar._fitting import jwst_pupil
+    from difstar.fitting import jwst_pupil
 
     model = ImageModel(jwst_pupil(), {"pixel_scale": 0.03,
                                       "incoherent": {"value": 0.3, "free": True}},

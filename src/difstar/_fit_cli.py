@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from difstar._fitting import PERTURB  # starts within ± 20 %: one figure for both fitters
+from difstar.fitting._params import PERTURB  # starts within ± 20 %: one figure for both fitters
 
 SATURATION_GUARD = 4.0  # also mask pixels expected within this many σ of the white level
 

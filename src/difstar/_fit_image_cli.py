@@ -31,7 +31,7 @@ def _figure(res, path, title):
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm, SymLogNorm
 
-    from ._fitting import _rms_peak, values_of_capture
+    from .fitting._solve import _rms_peak, values_of_capture
 
     def rows(x):
         return x if isinstance(x, list) else [x]
@@ -77,15 +77,16 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
     """Fit the manifest's model to its data; write result.json, fit.png, model.npy into
     ``out``, a folder difstar creates (whole or not at all; see ``io._output``). With
     ``robustness`` = N, also refit from N rough starts (every free parameter ± 20 %,
-    :func:`difstar._fitting.perturbed_starts`; about the manifest's starts, or with
+    :func:`difstar.fitting._analysis.perturbed_starts`; about the manifest's starts, or with
     ``rough_about="result"`` about the main fit's values) and write robustness.json / .md;
     with
     ``fainter`` = (f1, …), also fit copies of the star f times fainter
-    (:func:`difstar._fitting.fainter_copy`, stand-ins for other stars) and write
+    (:func:`difstar.fitting.fainter_copy`, stand-ins for other stars) and write
     fainter.json / .md."""
     import jax
 
-    from ._fitting import FitInputError, load_manifest
+    from .fitting._manifest import load_manifest
+    from .fitting._params import FitInputError
     from .io._output import output_dir
 
     jax.config.update("jax_enable_x64", True)
@@ -119,7 +120,8 @@ _NEEDS_NOISE = ("--fainter needs a stage with noise_from_residuals in the manife
 def _copy_noise(summary):
     """The noise the fainter copies get: the read noise and gain that the manifest's
     noise_from_residuals estimated (result.json's ``noise``)."""
-    from ._fitting import FitInputError, Noise
+    from .fitting._data import Noise
+    from .fitting._params import FitInputError
 
     n = summary.get("noise")
     if n is None:
@@ -130,10 +132,12 @@ def _copy_noise(summary):
 def fit_fainter_copy(manifest, summary, model_image, factor, seed, *, max_steps=None,
                      verbose=False):
     """Fit, by ``manifest``'s stages, a copy of its star ``factor`` times fainter with the
-    noise of draw ``seed`` (:func:`difstar._fitting.fainter_copy`), made from a fit of
+    noise of draw ``seed`` (:func:`difstar.fitting.fainter_copy`), made from a fit of
     the star: ``summary`` (result.json's content: the background and the noise estimated
     from the residuals) and its ``model_image``. Returns the copy's FitResult."""
-    from ._fitting import FitData, Noise, fainter_copy, fit, load_manifest
+    from .fitting._data import FitData, Noise, fainter_copy
+    from .fitting._manifest import load_manifest
+    from .fitting._procedure import fit
 
     model, data, opts = load_manifest(manifest)
     noise = _copy_noise(summary)
@@ -193,7 +197,11 @@ def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose,
                 about="start") -> dict:
     """Refit from ``n`` perturbed starts (about the manifest's starts or the main fit's
     ``about="result"``); compare each result with the main fit."""
-    from ._fitting import PERTURB, fit, load_manifest, perturbed_starts, values_of_capture
+    from .fitting._analysis import perturbed_starts
+    from .fitting._manifest import load_manifest
+    from .fitting._params import PERTURB
+    from .fitting._procedure import fit
+    from .fitting._solve import values_of_capture
 
     model, data, opts = load_manifest(manifest)
     ref, err = summary["values"], summary["errors"]
@@ -242,7 +250,9 @@ def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose,
 def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     """The main fit of ``loaded`` = :func:`load_manifest`'s (model, data, options),
     loaded at ``t0`` (the wall time counts from there)."""
-    from ._fitting import fit, model_spike_angles, spike_angles, values_of_capture
+    from .fitting._analysis import model_spike_angles, spike_angles
+    from .fitting._procedure import fit
+    from .fitting._solve import values_of_capture
 
     model, data, opts = loaded
     res = fit(model, data, stages=opts["stages"], starts=opts["starts"],
@@ -316,7 +326,7 @@ def _write_fits(out: Path, res, data, opts) -> None:
     in the input file's layout (a FITS input's header and WCS, its row order, its full
     frame with NaN outside the fitted window), so that the input minus model.fits is
     residual.fits; the fitted values as keywords with their units."""
-    from ._fitting import values_of_capture
+    from .fitting._solve import values_of_capture
     from .io import read_image
     from .io._images import write_fits_like
 
@@ -402,7 +412,7 @@ def register(sub, name: str) -> None:
 
 
 def _cmd(a) -> int:
-    from ._fitting import FitInputError
+    from .fitting._params import FitInputError
 
     try:
         run(a.manifest, a.out, verbose=not a.quiet, max_steps=a.max_steps,

@@ -1,0 +1,423 @@
+"""The forward model: :class:`ImageModel` predicts the data's image from named values
+(source, detector effects: shifts, distortion, resampling kernels)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from .._psf import plan_psf, psf
+from .._pupil import distorted
+from .._sensor import response_curve
+from .._zernike import Zernike
+from ._params import _PITCH, ARCSEC, FitInputError, _as_param
+from ._parts import Light, PupilBuilder
+
+
+class _Shifted(eqx.Module):
+    """A wavefront tilt (tx, ty) plus Zernike terms: OPD = tx x + ty y + Σ c_j Z_j."""
+
+    zernike: Zernike | None
+    tx: Any
+    ty: Any
+
+    def opd(self, x, y):
+        w = self.tx * x + self.ty * y
+        return w if self.zernike is None else w + self.zernike.opd(x, y)
+
+#: Parameters every model has, with defaults (SI units except where noted).
+COMMON = {"rotation": 0.0, "x0": 0.0, "y0": 0.0, "flux": 1.0, "background": 0.0,
+          "pixel_scale": 0.03, "jitter": 0.0, "halo": 0.0, "halo_width": 4.0,
+          "halo2": 0.0, "halo2_width": 1.5,
+          "shear": 0.0, "aspect": 0.0}
+
+#: The disc source's parameter: its radius in data pixels.
+SOURCE_DISC = {"source_radius": 1.0}
+
+#: The detector's response curve (:func:`difstar._sensor.response_curve`): the image is
+#: ``white`` · Z(I / ``white``; ``toe``, ``knee``) + background, I the linear image.
+RESPONSE = {"white": 1.0, "toe": 0.0, "knee": 60.0}
+
+def _source_kind(source):
+    """"point", "disc" or a user image (a 2-D array of non-negative finite values with a
+    positive sum; its centre pixel (shape // 2) is the star's position)."""
+    if isinstance(source, str):
+        if source not in ("point", "disc"):
+            raise FitInputError(f"ImageModel: source must be 'point', 'disc' or an image "
+                                f"(2-D array); got {source!r}.")
+        return source
+    a = np.asarray(source, dtype=float)
+    if a.ndim != 2 or not np.all(np.isfinite(a)) or np.any(a < 0) or not a.sum() > 0:
+        raise FitInputError("ImageModel: a source image must be a 2-D array of finite, "
+                            "non-negative values with a positive sum.")
+    return a.copy()
+
+def disc_transform(x):
+    """2 J1(x) / x, the Fourier transform of a uniform disc of unit area at
+    x = 2π f R (f cycles per pixel, R the radius in pixels); 1 at x = 0. J1 by the
+    rational and asymptotic approximations of Hart (Numerical Recipes' bessj1), to
+    about 1e-8, smooth in x for gradients."""
+    x = jnp.abs(jnp.asarray(x, float))
+    y = x * x
+    p = 72362614232.0 + y * (-7895059235.0 + y * (242396853.1 + y * (
+        -2972611.439 + y * (15704.48260 + y * (-30.16036606)))))
+    q = 144725228442.0 + y * (2300535178.0 + y * (18583304.74 + y * (
+        99447.43394 + y * (376.9991397 + y))))
+    small = 2.0 * p / q  # 2 J1(x)/x for x < 8 (J1 = x p/q)
+    xb = jnp.maximum(x, 8.0)
+    z = 8.0 / xb
+    y2 = z * z
+    xx = xb - 2.356194491
+    a1 = 1.0 + y2 * (0.183105e-2 + y2 * (-0.3516396496e-4 + y2 * (
+        0.2457520174e-5 + y2 * (-0.240337019e-6))))
+    a2 = 0.04687499995 + y2 * (-0.2002690873e-3 + y2 * (0.8449199096e-5 + y2 * (
+        -0.88228987e-6 + y2 * 0.105787412e-6)))
+    big = 2.0 * jnp.sqrt(0.636619772 / xb) * (jnp.cos(xx) * a1 - z * jnp.sin(xx) * a2) / xb
+    return jnp.where(x < 8.0, small, big)
+
+def _resampling_order(resampling) -> int:
+    """``None`` (no resampling modelled) → 0; ``"lanczos<a>"`` (a = 2 … 5) → a."""
+    if resampling is None:
+        return 0
+    m = re.fullmatch(r"lanczos([2-5])", str(resampling).lower())
+    if m is None:
+        raise FitInputError(f"ImageModel: resampling must be null or 'lanczos2' … "
+                            f"'lanczos5' (the kernel that resampled the data, e.g. SWarp's "
+                            f"RESAMPT1 = LANCZOS3); got {resampling!r}.")
+    return int(m.group(1))
+
+def lanczos_kernel(x, a: int):
+    """The Lanczos-``a`` interpolation kernel sinc(x)·sinc(x/a) for |x| < a, else 0."""
+    x = np.asarray(x, float)
+    return np.where(np.abs(x) < a, np.sinc(x) * np.sinc(x / a), 0.0)
+
+def lanczos_transfer(f, a: int, n: int = 4001):
+    """The transfer function (Fourier transform, unit at f = 0) of the continuous
+    Lanczos-``a`` kernel at frequencies ``f`` (cycles per data pixel).
+
+    Why a resampled image sees it: a frame sampled at an offset u and interpolated
+    onto the output grid with kernel L gives out(x) = Σ_k g(k + u) L(x − k − u); averaged
+    over offsets u spread evenly over a pixel this is ∫ g(t) L(x − t) dt, the
+    convolution of the pixel-integrated PSF g with L. A co-add of many frames at
+    random sub-pixel offsets (SWarp's RESAMPT = LANCZOS3, combined by mean or median)
+    is blurred by L on average; the separable 2-D kernel is L(x) L(y).
+    Composite Simpson's rule over [−a, a] with ``n`` (odd) nodes: the kernel is smooth
+    and compact, so 4001 nodes give the transfer to about 1e-12."""
+    x = np.linspace(-a, a, n)
+    w = np.ones(n)
+    w[1:-1:2], w[2:-1:2] = 4.0, 2.0
+    w *= (x[1] - x[0]) / 3.0
+    k = lanczos_kernel(x, a) * w
+    f = np.asarray(f, float)
+    h = np.cos(2 * np.pi * f[..., None] * x) @ k
+    return h / k.sum()
+
+def image_distortion(shear, aspect):
+    """The image-plane linear map D = [[1, 0], [shear, 1 + aspect]] (x right, y up): the
+    data's y axis keeps its direction (so ``rotation`` is read against it), a direction
+    at angle θ tilts by about shear·cos²θ, and y is stretched by 1 + aspect. A resampled
+    (drizzled) or distorted detector grid has such a map; it moves the spikes of a rigid
+    pupil off their 60° spacing."""
+    return jnp.array([[1.0, 0.0], [shear, 1.0 + aspect]])
+
+class ImageModel:
+    """A star image: pupil builder, wavefront (Zernike Noll indices), light, detector.
+
+    ``params``: name → :class:`Param` (or a number, or a dict with value/free/bounds/
+    scale) for the common parameters (``rotation`` deg, ``x0``, ``y0`` data pixels,
+    ``flux``, ``background``, ``pixel_scale`` arcsec per data pixel, ``jitter`` σ in data
+    pixels, ``halo`` fraction and ``halo_width`` σ in data pixels: a broad scattered-light
+    Gaussian; ``halo2``, ``halo2_width``: a second one, applied after the first (each
+    moves a fraction of the light into a Gaussian: a segmented mirror's phasing errors
+    scatter light into a halo about one segment's diffraction pattern wide, a co-add's
+    misregistration and a detector's charge diffusion spread the core); ``shear`` and
+    ``aspect``: the image-plane distortion of :func:`image_distortion`), the pupil
+    builder's and ``z<j>`` (nm RMS) for each Noll index in ``zernike``. A segmented
+    builder (one with a ``segment``, :func:`jwst_pupil`) adds ``incoherent``, a fraction
+    f in [0, 1]: the image is (1 − f) × the whole pupil's + f × one segment's own pattern
+    (same orientation and shift), which is the mean image for random phasing errors of
+    RMS φ between the segments with f = 1 − e^(−φ²) (the cross terms between segments
+    average out; the segments' patterns differ only in phase, so their sum is the one
+    segment's; struts and obstruction crossing a segment are left out of it). ``oversample``:
+    data pixels per native detector pixel (drizzled or oversampled data: the PSF is
+    integrated over the data's fine pixels, then convolved with a native pixel's box);
+    ``pad``: extra data pixels computed around the window so the blur does not wrap.
+    ``accuracy``: the PSF engine's target.
+
+    ``source``: "point" (default); "disc", a uniform disc of radius ``source_radius``
+    (data pixels; its transform 2 J1(x)/x multiplies the image's spectrum, like the
+    blurs); or a 2-D array, the source as the data's pixels would see it (any size up to
+    the padded window, its centre pixel shape // 2 at the star's position). ``response``:
+    the detector's response curve, the image becomes ``white`` · Z(I / ``white``) +
+    background with the toe and knee of :func:`difstar._sensor.response_curve` (the
+    camera fitter's curve) — for images that saturate softly; hard-clipped pixels are
+    better masked (``FitData.from_array(..., saturation=level)``)."""
+
+    def __init__(self, pupil: PupilBuilder, params: Mapping[str, Any], *, light: Light,
+                 zernike: Sequence[int] = (), oversample: float = 1.0, pad: int = 8,
+                 accuracy: float = 1e-2, max_shift: float = 4.0, source: Any = "point",
+                 response: bool = False, resampling: str | None = None):
+        self.pupil = pupil
+        self.resampling = _resampling_order(resampling)
+        self.source = _source_kind(source)
+        self.response = bool(response)
+        self.light = light
+        self.zernike = tuple(int(j) for j in zernike)
+        if any(j < 2 for j in self.zernike):
+            raise FitInputError("ImageModel: Zernike Noll indices must be >= 2 (1 is piston).")
+        self.oversample = float(oversample)
+        self.pad = int(pad)
+        self.accuracy = float(accuracy)
+        self.max_shift = float(max_shift)
+        defaults = dict(COMMON) | dict(pupil.defaults) | {f"z{j}": 0.0 for j in self.zernike}
+        if isinstance(self.source, str) and self.source == "disc":
+            defaults |= SOURCE_DISC
+        if self.response:
+            defaults |= RESPONSE
+        unknown = set(params) - set(defaults)
+        if unknown:
+            raise FitInputError(f"ImageModel: unknown parameters {sorted(unknown)}; known: "
+                                f"{sorted(defaults)}.")
+        self.params = {k: _as_param(params.get(k, v)) for k, v in defaults.items()}
+        ps = self.params["pixel_scale"]
+        for v in [ps.value, *(ps.bounds or ())]:
+            if not 1e-4 < v < 100:
+                raise FitInputError(f"ImageModel: pixel_scale {v} is not in arcsec per pixel "
+                                    "(expected 1e-4 … 100).")
+        for k, lo in (("source_radius", 0.0), ("white", 1e-300), ("knee", 1e-300),
+                      ("toe", 0.0)):
+            p = self.params.get(k)
+            if p is not None and min([p.value, *(p.bounds or ())]) < lo:
+                raise FitInputError(f"ImageModel: {k} = {p.value} (bounds {p.bounds}) must be "
+                                    f"{'>= 0' if lo == 0 else '> 0'}.")
+        p = self.params.get("incoherent")
+        if p is not None and not 0 <= min([p.value, *(p.bounds or ())]) <= max(
+                [p.value, *(p.bounds or ())]) <= 1:
+            raise FitInputError(f"ImageModel: incoherent = {p.value} (bounds {p.bounds}) is "
+                                "a fraction of the light: keep it and its bounds in [0, 1].")
+        for j in self.zernike:
+            p = self.params[f"z{j}"]
+            if max([abs(p.value), *(abs(b) for b in (p.bounds or ()))]) > 1e4:
+                raise FitInputError(f"ImageModel: z{j} = {p.value} (bounds {p.bounds}) is "
+                                    "not in nm RMS (over 10 µm).")
+        self._plans = {}
+        self._source_ft = {}
+        self.per_capture: tuple[str, ...] = ()
+
+    def for_captures(self, per_capture: Sequence[str], n: int) -> ImageModel:
+        """A copy for ``n`` captures fitted together: each name in ``per_capture`` (e.g.
+        ``x0``, ``y0``, ``flux``, ``background``) gets one parameter per capture,
+        ``name@i`` (a copy of the original's value, bounds and free flag); every other
+        parameter (pupil, rotation, wavefront, detector) is shared by all captures."""
+        unknown = set(per_capture) - set(self.params)
+        if unknown:
+            raise FitInputError(f"per_capture: unknown parameters {sorted(unknown)}.")
+        m = object.__new__(ImageModel)
+        m.__dict__ = dict(self.__dict__)
+        m.params = {}
+        for k, p in self.params.items():
+            if k in per_capture:
+                m.params[k] = dataclasses.replace(p, free=False)
+                for i in range(n):
+                    m.params[f"{k}@{i}"] = dataclasses.replace(p)
+            else:
+                m.params[k] = dataclasses.replace(p)
+        m.per_capture = tuple(per_capture)
+        return m
+
+    def capture_values(self, v: Mapping[str, Any], i: int) -> dict:
+        """The values capture ``i`` sees: its own ``name@i`` for the per-capture names."""
+        if not self.per_capture:
+            return dict(v)
+        return {**v, **{k: v[f"{k}@{i}"] for k in self.per_capture}}
+
+    def expand(self, names: Sequence[str], n: int) -> list[str]:
+        """Stage names with each per-capture name replaced by its ``name@i``."""
+        out = []
+        for k in names:
+            out += [f"{k}@{i}" for i in range(n)] if k in self.per_capture else [k]
+        return out
+
+    # names
+    @property
+    def names(self) -> list[str]:
+        return list(self.params)
+
+    @property
+    def free(self) -> list[str]:
+        return [k for k, p in self.params.items() if p.free]
+
+    def values(self) -> dict[str, float]:
+        return {k: p.value for k, p in self.params.items()}
+
+    def with_values(self, values: Mapping[str, float], free: Sequence[str] | None = None):
+        """A copy with new values (and, if given, only ``free`` left free)."""
+        m = object.__new__(ImageModel)
+        m.__dict__ = dict(self.__dict__)
+        m.params = {}
+        for k, p in self.params.items():
+            q = dataclasses.replace(p, value=float(values.get(k, p.value)))
+            if free is not None:
+                q.free = k in free and p.free
+            if q.bounds is not None:
+                q.value = min(max(q.value, q.bounds[0]), q.bounds[1])
+            m.params[k] = q
+        return m
+
+    def with_resampling(self, resampling: str | None) -> ImageModel:
+        """A copy whose detector models a co-add resampled with ``resampling`` (null or
+        'lanczos2' … 'lanczos5', as the constructor takes it); every parameter and plan
+        kept (the kernel does not change the PSF's plan)."""
+        m = object.__new__(ImageModel)
+        m.__dict__ = dict(self.__dict__)
+        m.resampling = _resampling_order(resampling)
+        return m
+
+    def _bound(self, name, pick):
+        p = self.params[name]
+        vals = [p.value] + (list(p.bounds) if (p.free and p.bounds) else [])
+        return pick(vals)
+
+    @property
+    def has_incoherent(self) -> bool:
+        """Whether the image has the segments' incoherent part (``incoherent`` free or
+        not 0; only for a pupil builder with a ``segment``)."""
+        p = self.params.get("incoherent")
+        return (self.pupil.segment is not None and p is not None
+                and (p.free or p.value != 0))
+
+    def plan(self, shape, light: Light | None = None, *, segment: bool = False):
+        """The PSF plan for an output window ``shape`` (data pixels, padding included) and
+        ``light`` (default: the model's), made once with the largest angular scale and
+        wavefront slope the bounds allow. ``segment``: the plan of one segment's pattern
+        (the incoherent part; tilt only, no Zernike terms), which the whole pupil's plan
+        makes and caches as well, so that :meth:`image` finds it inside a trace."""
+        light = self.light if light is None else light
+        key = (tuple(shape), tuple(light.wavelengths), segment)
+        if key in self._plans:
+            return self._plans[key]
+        if not segment and self.has_incoherent:
+            self.plan(shape, light, segment=True)
+        ang = self._bound("pixel_scale", min) * ARCSEC
+        z = _PITCH / ang
+        v = self.values()
+        if segment:
+            pupil, r = self._oriented(self.pupil.segment(v), v), float(self.pupil.segment_radius)
+        else:
+            pupil, r = self._pupil_at(v), float(self.pupil.max_radius)
+        # the widest shift of the star any value or bound allows (x0@i: each capture's)
+        shift = max([self.max_shift] + [abs(b) for k, p in self.params.items()
+                                         if k.split("@")[0] in ("x0", "y0")
+                                         for b in [p.value, *(p.bounds or ())]])
+        tilt = shift * self._bound("pixel_scale", max) * ARCSEC
+        # the largest Zernike terms any value or bound allows (the whole pupil's only)
+        coeffs = {} if segment else {
+            j: 1e-9 * max(abs(c) for c in [self.params[f"z{j}"].value,
+                                           *(self.params[f"z{j}"].bounds or ())])
+            for j in self.zernike}
+        coeffs = {j: c for j, c in coeffs.items() if c > 0}
+        wf = _Shifted(Zernike(coeffs, r) if coeffs else None, tilt, tilt)
+        plan = plan_psf(pupil,
+                        wavelength=np.asarray(light.wavelengths),
+                        z_image=z, pixel_pitch=_PITCH, shape=tuple(shape), sampling="pixel",
+                        accuracy=self.accuracy, wavefront=wf, max_radius=r)
+        self._plans[key] = plan
+        return plan
+
+    def _pupil_at(self, v):
+        return self._oriented(self.pupil.build(v), v)
+
+    def _oriented(self, pup, v):
+        """``pup`` rotated by ``rotation`` and distorted by ``shear``, ``aspect``."""
+        pup = pup.transformed(jnp.deg2rad(v["rotation"]))
+        if any(self.params[k].free or self.params[k].value != 0 for k in ("shear", "aspect")):
+            d = image_distortion(v["shear"], v["aspect"])
+            pup = distorted(pup, jnp.linalg.inv(d).T)  # the pupil map for image map D
+        return pup
+
+    def image(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None,
+              exposure: float = 1.0, light: Light | None = None):
+        """The model image (H, W) in data pixels for parameter values ``v`` (a dict of
+        scalars, traceable), for a capture of relative ``exposure`` in ``light`` (default:
+        the model's)."""
+        light = self.light if light is None else light
+        h, w = shape
+        o = self.oversample
+        pad = self.pad
+        hp, wp = h + 2 * pad, w + 2 * pad
+        plan = self.plan((hp, wp), light) if plan is None else plan
+        ang = v["pixel_scale"] * ARCSEC  # radians per data pixel
+        z = _PITCH / ang * 1.0
+        zern = None
+        if self.zernike:
+            r = float(self.pupil.max_radius)
+            zern = Zernike({j: 1e-9 * v[f"z{j}"] for j in self.zernike}, r)
+        # a shift by (x0 columns right, y0 rows down) data pixels is a tilt of the
+        # wavefront: the field's phase exp(i k W) with W = −θ·x moves the image by +θ
+        tx = -v["x0"] * ang
+        ty = v["y0"] * ang
+        wf = _Shifted(zern, tx, ty)
+        pupil = self._pupil_at(v)
+        lam = np.asarray(light.wavelengths)
+        wts = np.asarray(light.weights)
+        img = psf(pupil, wavelength=lam, weights=wts, z_image=z, pixel_pitch=_PITCH,
+                  shape=(hp, wp), plan=plan, wavefront=wf)
+        if self.has_incoherent:
+            # random phasing errors of RMS φ between segments: the mean image is
+            # e^(−φ²) × the whole pupil's + (1 − e^(−φ²)) × the sum of the segments' own
+            # patterns, each the one segment's shifted in the pupil (the same image)
+            seg = psf(self._oriented(self.pupil.segment(v), v), wavelength=lam,
+                      weights=wts, z_image=z, pixel_pitch=_PITCH, shape=(hp, wp),
+                      plan=self.plan((hp, wp), light, segment=True),
+                      wavefront=_Shifted(None, tx, ty))
+            img = (1.0 - v["incoherent"]) * img + v["incoherent"] * seg
+        # detector: native pixel box (oversampled data) and Gaussian blur, by FFT
+        fy = np.fft.fftfreq(hp)[:, None]
+        fx = np.fft.rfftfreq(wp)[None, :]
+        f2 = fx**2 + fy**2
+        kern = jnp.exp(-2 * math.pi**2 * v["jitter"] ** 2 * f2)
+        for frac, width in (("halo", "halo_width"), ("halo2", "halo2_width")):
+            kern = kern * ((1.0 - v[frac])
+                           + v[frac] * jnp.exp(-2 * math.pi**2 * v[width] ** 2 * f2))
+        if o != 1.0:
+            kern = kern * jnp.asarray(np.sinc(o * fx) * np.sinc(o * fy))
+        if self.resampling:
+            a = self.resampling
+            kern = kern * jnp.asarray(lanczos_transfer(fx, a) * lanczos_transfer(fy, a))
+        if isinstance(self.source, str) and self.source == "disc":
+            kern = kern * disc_transform(2 * math.pi * np.sqrt(f2) * v["source_radius"])
+        elif not isinstance(self.source, str):
+            kern = kern * self._source_spectrum((hp, wp))
+        img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
+        img = v["flux"] * exposure * img[pad:pad + h, pad:pad + w]
+        if self.response:
+            img = v["white"] * response_curve(img / v["white"], v["toe"], v["knee"])
+        return img + v["background"]
+
+    def _source_spectrum(self, shape):
+        """The half spectrum of the user's source image (unit sum, its centre pixel at
+        the origin) on the padded window ``shape``."""
+        if shape not in self._source_ft:
+            src = self.source
+            sh, sw = src.shape
+            if sh > shape[0] or sw > shape[1]:
+                raise FitInputError(f"ImageModel: the source image ({sh} × {sw}) is larger "
+                                    f"than the padded window {shape}; crop it or raise pad.")
+            big = np.zeros(shape)
+            big[:sh, :sw] = src / src.sum()
+            big = np.roll(big, (-(sh // 2), -(sw // 2)), axis=(0, 1))
+            self._source_ft[shape] = np.fft.rfft2(big)  # NumPy: a constant in any trace
+        return self._source_ft[shape]
+
+    def __call__(self, shape, values=None):
+        """Concrete model image at ``values`` (default: the current values)."""
+        v = self.values() if values is None else {**self.values(), **values}
+        v = {k: jnp.asarray(x, float) for k, x in v.items()}
+        return np.asarray(self.image(v, tuple(shape)))

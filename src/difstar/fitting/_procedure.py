@@ -1,0 +1,356 @@
+""":func:`fit`: the stages of a fit run in turn (windows, free parameters, scans, hops,
+repeats, reweighting), every stage checked before any solves."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from ._analysis import _scan, chi2_at, spike_target
+from ._data import noise_from_residuals, reject_outliers
+from ._model import ImageModel
+from ._params import FitInputError
+from ._solve import (
+    FitResult,
+    _as_list,
+    _errors,
+    _one_fit,
+    _PixelTarget,
+    _release_compiled,
+    model_images,
+)
+from ._stages import _check_fit_inputs, _put
+
+
+def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
+        starts: Mapping[str, Sequence[float]] | None = None, max_steps: int = 100,
+        rtol: float = 1e-6, atol: float = 1e-8, verbose: bool = False,
+        per_capture: Sequence[str] | None = None) -> FitResult:
+    """Fit ``model`` to ``data`` by Levenberg–Marquardt.
+
+    ``data``: a :class:`FitData`, or a list of them (captures of the same star:
+    exposures, dithers, frames) fitted together; then each name in ``per_capture``
+    (default ``x0``, ``y0``, ``flux``, ``background``) has one value per capture,
+    ``name@i`` in the result, and every other parameter is shared.
+
+    ``stages``: coarse to fine, each a dict with
+
+    - ``free`` (names, or "all": the model's free parameters), ``fix`` (names held);
+    - ``set`` (name → value): before the stage, put those parameters at those values
+      (kept inside their bounds), whatever the start or the earlier stages gave them:
+      coarse to fine, e.g. the wavefront at zero until the geometry is found, so that
+      a rough start's wavefront cannot steer the coarse stages into another basin;
+    - ``half`` (fit the central (2 half + 1)² pixels; None: the whole image) and
+      ``annulus`` ([r_min, r_max] pixels: only those radii);
+    - ``spikes``: fit the spikes instead of all pixels, around the directions
+      :func:`spike_angles` measures in the data, about the star's centre and background
+      reached so far (options of :func:`spike_target`: ``r_min``, ``r_max``,
+      ``half_width``, ``n_spikes``, ``directions`` "data" or "model"; ``profiles``
+      true: their angular profiles, :class:`SpikeProfiles`; false: the pixels within
+      ± ``half_width`` degrees): the stage for the rotation;
+    - ``noise_from_residuals`` (options of :func:`noise_from_residuals`, e.g.
+      ``{"floor": 0.03}``): before the stage, σ from read noise and gain estimated from
+      the residual at the values reached, for this and later stages and the errors;
+    - ``reject`` (options of :func:`reject_outliers`, e.g. ``{"above": 20, "r_min": 12,
+      "grow": 2, "relative": 3e-4}``): before the stage (after ``noise_from_residuals``),
+      mask the pixels more than ``above`` σ from the model at the values reached, away
+      from the core (a neighbouring star, a cosmic ray, a hot pixel), for this and later
+      stages; the number masked and the largest |residual| / σ kept are logged;
+    - ``scan`` (``{"name": "rotation", "half_range": 5, "step": 0.2}``): first move that
+      parameter to the lowest χ² on a grid, then solve;
+    - ``max_steps``, ``rtol``: the solver's limits (default: the arguments);
+    - a stage that is only ``hop`` (``{"name": "rotation", "offsets": [-0.5, 0.5],
+      "stages": 2}``): re-run the ``stages`` solving stages before it with that
+      parameter moved by each offset and keep the lowest χ² on all pixels: a way out of
+      a neighbouring basin that the other parameters' adaptation makes self-consistent;
+      ``{"flip": ["z6"], "stages": 2}`` negates each named parameter in turn instead
+      (an entry that is a list of names negates those together: ``{"flip": [["z4",
+      "z5", "z6", "z11"]]}`` is the whole twin of the even terms) —
+      for the sign ambiguities of even wavefront terms in an in-focus image (the
+      "twin" of phase retrieval: W(x, y) and −W(−x, −y) give the same image for a
+      centrally symmetric pupil, so an almost symmetric one has a near-twin minimum);
+      ``{"set": {"z4": 0, "z5": 0}, "stages": 3}`` puts the named parameters at those
+      values, all at once (a second start for the wavefront from zero: a rough start's
+      wavefront can settle in a neighbouring minimum);
+    - a stage that is only ``repeat`` (``{"until": {"rotation": 0.002}, "stages": 2,
+      "max_rounds": 6}``): re-run the ``stages`` solving stages before it, round after
+      round (σ as it is), until each parameter named in ``until`` moves by less than its
+      tolerance over a round: the fixed point of stages that fit different parameters
+      in turn (the rotation on the spikes, then the rest on all pixels), which a single
+      pass leaves wherever its start put it along a long, flat valley. Not settled after
+      ``max_rounds``: a warning in the result.
+
+    A stage with a key or an option not listed here is refused before any fitting.
+    Each stage starts from the last one's values. Standard errors are computed at the
+    end for every free parameter on the pixels; those of parameters last fitted in a
+    spikes stage come from that stage. Default: one stage, all free, whole image.
+    ``starts``: name → start values tried in the first stage (multi-start; the lowest χ²
+    goes on). Raises :class:`FitInputError` for inputs that cannot be right. For several
+    captures the result's images (``model_image``, ``residual``, ``data``, ``mask``)
+    are lists, one per capture.
+    """
+    t0 = time.perf_counter()
+    datas = _as_list(data)
+    n_cap = len(datas)
+    if n_cap == 0:
+        raise FitInputError("fit: no data (an empty list of captures).")
+    for i, d in enumerate(datas):
+        if d.image.shape[0] < 4 or d.image.shape[1] < 4:
+            raise FitInputError(f"fit: capture {i}'s window is smaller than 4 × 4 pixels.")
+    if n_cap > 1 or per_capture:
+        per = ("x0", "y0", "flux", "background") if per_capture is None else tuple(per_capture)
+        model = model.for_captures(per, n_cap)
+    if not model.free:
+        raise FitInputError("fit: no free parameter (set free=true on at least one).")
+    stages = list(stages or [{"free": "all", "half": None}])
+    values = model.values()
+    log = []
+    last_stage = {}
+    spike_errors = {}
+    notes = []  # the procedure's own warnings (e.g. a repeat that did not settle)
+    status, ok, steps = "converged", True, 0
+
+    def run_stage(si, st, values, datas):
+        """One stage from ``values``: returns (values, status, ok, steps, datas)."""
+        datas = list(datas)
+        names = (model.free if st.get("free", "all") == "all"
+                 else model.expand(st["free"], n_cap))
+        fix = set(model.expand(st.get("fix", ()), n_cap))
+        names = [k for k in names if k not in fix]
+        bad = set(names) - set(model.free)
+        if bad:
+            raise FitInputError(f"fit: stage {si} frees {sorted(bad)}, which are not free "
+                                "parameters of the model.")
+        if st.get("set") is not None:
+            put = st["set"]
+            if isinstance(put, Mapping):  # a per-capture name: every capture's own
+                put = {q2: x for q, x in put.items() for q2 in model.expand([q], n_cap)}
+            values = {**values, **_put(model, put, f"fit: stage {si}: set")}
+            log.append({"stage": si, "set": dict(st["set"])})
+        if st.get("noise_from_residuals") is not None:
+            mimgs = model_images(model, values, datas)
+            noises = []
+            for i, mi in enumerate(mimgs):
+                bg = model.capture_values(values, i)["background"]
+                nz, datas[i] = noise_from_residuals(datas[i], np.asarray(mi), bg,
+                                                    **dict(st["noise_from_residuals"]))
+                noises.append({"read": nz.read, "gain": nz.gain, "floor": nz.floor})
+            log.append({"stage": si, "noise": noises[0] if n_cap == 1 else noises})
+            if verbose:
+                for nz in noises:
+                    print(f"stage {si}: noise from the residuals: read {nz['read']:.4g}, "
+                          f"gain {nz['gain']:.4g}, floor {nz['floor']:g}", flush=True)
+        if st.get("reject") is not None:
+            mimgs = model_images(model, values, datas)
+            counts, largest = [], []
+            for i, mi in enumerate(mimgs):
+                h, w = datas[i].image.shape
+                cv = model.capture_values(values, i)
+                datas[i], n, z = reject_outliers(datas[i], np.asarray(mi), cv["background"],
+                                                 (w // 2 + cv["x0"], h // 2 + cv["y0"]),
+                                                 **dict(st["reject"]))
+                counts.append(n)
+                largest.append(z)
+            log.append({"stage": si, "rejected": counts[0] if n_cap == 1 else counts,
+                        "largest_kept": largest[0] if n_cap == 1 else largest})
+            if verbose:
+                print(f"stage {si}: rejected {counts[0] if n_cap == 1 else counts} pixels "
+                      f"more than {st['reject'].get('above', 20.0):g} σ from the model; "
+                      f"the largest kept: {max(largest):.3g} σ", flush=True)
+        half = st.get("half")
+        ds = [d if half is None else d.cropped(int(half)) for d in datas]
+        if st.get("annulus") is not None:
+            ds = [d.annulus(*(float(r) for r in st["annulus"])) for d in ds]
+        if st.get("spikes") is not None:
+            mimgs = [None] * len(ds)
+            if st["spikes"].get("directions") == "model":
+                mimgs = model_images(model, values, ds)
+            targets = [spike_target(d, model.capture_values(values, i), model_image=mi,
+                                    **dict(st["spikes"]))
+                       for i, (d, mi) in enumerate(zip(ds, mimgs))]
+        else:
+            targets = [_PixelTarget(d) for d in ds]
+        kind = targets[0].kind
+        if st.get("scan") is not None:
+            values = _scan(model, ds, targets, values, **dict(st["scan"]))
+            log.append({"stage": si, "scan": dict(st["scan"]),
+                        "best": values[st["scan"]["name"]]})
+            if verbose:
+                print(f"stage {si}: scan of {st['scan']['name']}: best "
+                      f"{values[st['scan']['name']]:.4g}", flush=True)
+        tries = [{}]
+        if si == 0 and starts:
+            tries = [{}]
+            for k, vs in starts.items():
+                tries = [dict(t, **{k: float(x)}) for t in tries for x in vs]
+        best = None
+        for tr in tries:
+            m = model.with_values({**values, **tr}, free=names)
+            ts = time.perf_counter()
+            vals, status, ok, n = _one_fit(m, ds, targets, max_steps=int(
+                st.get("max_steps", max_steps)), rtol=float(st.get("rtol", rtol)), atol=atol,
+                label=f"stage {si}" if verbose else None)
+            chi2 = chi2_at(m, ds, vals, targets)
+            entry = {"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
+                     "kind": kind, "status": status, "steps": n,
+                     "seconds": time.perf_counter() - ts}
+            log.append(entry)
+            if verbose:
+                print(f"stage {si} ({kind}) start {tr}: chi2 {chi2:.6g} {status} "
+                      f"{n} steps {time.perf_counter() - ts:.1f} s", flush=True)
+            if best is None or chi2 < best[0]:
+                best = (chi2, vals, status, ok, n, m, entry)
+        _, values, status, ok, steps, m, entry = best
+        for k in names:
+            last_stage[k] = si
+        if kind != "pixels":
+            errs = _errors(m, ds, values, targets)[0]
+            entry["errors"] = errs
+            entry["directions"] = [t.directions for t in targets] if n_cap > 1 \
+                else targets[0].directions
+            spike_errors[si] = errs
+        _release_compiled()
+        return values, status, ok, steps, datas
+
+    def solving_before(si):
+        """The solving stages before stage ``si`` (hop and repeat stages passed over)."""
+        return [sj for sj in range(si)
+                if stages[sj].get("hop") is None and stages[sj].get("repeat") is None]
+
+    def rerun(which, v, datas):
+        """Re-run the stages ``which`` from ``v`` with σ and the pixels as they are
+        (their own noise_from_residuals and reject left out, so that what is compared
+        has one yardstick): (values, (status, ok, steps), datas)."""
+        ds = list(datas)
+        st_j, ok_j, n_j = status, ok, steps
+        for sj in which:
+            again = {q: x for q, x in stages[sj].items()
+                     if q not in ("noise_from_residuals", "reject")}
+            v, st_j, ok_j, n_j, ds = run_stage(sj, again, v, ds)
+        return v, (st_j, ok_j, n_j), ds
+
+    def repeat(si, st, values, datas):
+        """Re-run the ``stages`` solving stages before this one, round after round, until
+        every parameter named in ``until`` moves by less than its tolerance over a round
+        (or ``max_rounds``): the fixed point of stages that fit different parameters in
+        turn (e.g. the rotation on the spikes, then the rest on all pixels), which one
+        pass leaves wherever its start put it in a long, flat valley."""
+        nonlocal status, ok, steps
+        k, until, max_rounds = repeats[si]
+        solving = solving_before(si)
+        names = {q2: tol for q, tol in until.items() for q2 in model.expand([q], n_cap)}
+        rounds = []
+        settled = False
+        for _ in range(max_rounds):
+            before = {q: values[q] for q in names}
+            values, (status, ok, steps), datas = rerun(solving[-k:], values, datas)
+            moved = {q: values[q] - before[q] for q in names}
+            rounds.append({"values": {q: values[q] for q in names}, "moved": moved,
+                           "chi2": chi2_at(model, datas, values)})
+            if verbose:
+                print(f"stage {si}: repeat round {len(rounds)}: " + ", ".join(
+                    f"{q} {values[q]:.6g} (moved {moved[q]:+.3g})" for q in names)
+                    + f", chi2 {rounds[-1]['chi2']:.6g}", flush=True)
+            if all(abs(moved[q]) < names[q] for q in names):
+                settled = True
+                break
+        log.append({"stage": si, "repeat": dict(st["repeat"]), "rounds": rounds,
+                    "settled": settled})
+        if not settled:
+            notes.append(f"repeat (stage {si}): {', '.join(names)} still moved by more than "
+                         f"the tolerance after {max_rounds} rounds: raise max_rounds or "
+                         "the tolerance.")
+        return values, datas
+
+    def hop(si, st, values, datas):
+        """Re-run the ``stages`` solving stages before this one (hop stages are passed
+        over) from ``values`` changed in each way the hop names: ``name`` moved by each
+        of ``offsets``, each name in ``flip`` negated, or the parameters of ``set`` put
+        at its values, all at once (σ as before the hop: they do not re-estimate the
+        noise); keep whichever ends at the lowest χ² on all pixels, the unchanged
+        result included."""
+        nonlocal status, ok, steps, spike_errors
+        h = dict(st["hop"])
+        k = int(h.get("stages", 2))
+        solving = solving_before(si)
+        # each entry of flip: one name, or a list of names negated together (the twin)
+        flips = [(q,) if isinstance(q, str) else tuple(q) for q in h.get("flip", ())]
+        name = h.get("name")
+        put = dict(h.get("set", {}))
+        named = [q for g in flips for q in g] + list(put) + ([name] if name is not None else [])
+        bad = [q for q in named if not isinstance(q, str) or q not in model.params]
+        if any(not g for g in flips):
+            bad.append("[] (an empty group)")
+        kinds = (name is not None) + bool(flips) + bool(put)
+        if (bad or not 1 <= k <= len(solving) or kinds != 1
+                or (name is not None and not h.get("offsets"))):
+            raise FitInputError(f"fit: stage {si}: hop needs one of: a parameter of the model "
+                                "with offsets ({'name': ..., 'offsets': [...]}), a list of "
+                                "parameters to negate, each a name or a list of names "
+                                "negated together ({'flip': ['z6', ['z4', 'z11']]}), or "
+                                "values to put "
+                                "({'set': {name: value}}); and 1 <= stages <= "
+                                f"{len(solving)} earlier solving stages; got {h}"
+                                + (f" (unknown: {bad})" if bad else "") + ".")
+        ref = list(datas)
+
+        def chi2_of(v):
+            return chi2_at(model, ref, v)
+
+        put_at = _put(model, put, f"fit: stage {si}: hop set") if put else {}
+        best = (chi2_of(values), values, datas, (status, ok, steps), dict(spike_errors))
+        tried = [{"change": "none", "chi2": best[0]}]
+        moves = ([(f"{name} {float(off):+g}", {name: values[name] + float(off)})
+                  for off in h.get("offsets", ()) if name is not None]
+                 + [(", ".join(g) + " negated", {q: -values[q] for q in g}) for g in flips]
+                 + ([("set " + ", ".join(f"{q}={x:g}" for q, x in put.items()), put_at)]
+                    if put else []))
+        for label, change in moves:
+            v = dict(values)
+            for q, x in change.items():
+                p = model.params[q]
+                v[q] = x if p.bounds is None else min(max(x, p.bounds[0]), p.bounds[1])
+            v, (st_j, ok_j, n_j), ds = rerun(solving[-k:], v, ref)
+            c = chi2_of(v)
+            tried.append({"change": label, "chi2": c,
+                          "ends_at": {q: v[q] for q in change}})
+            if verbose:
+                print(f"stage {si}: hop {label}: ends at "
+                      f"{ {q: round(v[q], 4) for q in change} }, chi2 {c:.6g} "
+                      f"(best so far {best[0]:.6g})", flush=True)
+            if c < best[0]:
+                best = (c, v, ds, (st_j, ok_j, n_j), dict(spike_errors))
+        log.append({"stage": si, "hop": h, "tried": tried})
+        _, values, datas, (status, ok, steps), spike_errors = best
+        return values, datas
+
+    # every stage's mistakes (keys, names, windows, limits, scans, hops, repeats) and the
+    # starts' are found before any fitting; a repeat's (stages, until, max_rounds) kept
+    repeats = _check_fit_inputs(model, datas, stages, starts=starts, max_steps=max_steps,
+                                rtol=rtol)
+    for si, st in enumerate(stages):
+        if st.get("hop") is not None:
+            values, datas = hop(si, st, values, datas)
+            continue
+        if st.get("repeat") is not None:
+            values, datas = repeat(si, st, values, datas)
+            continue
+        values, status, ok, steps, datas = run_stage(si, st, values, datas)
+
+    final = model.with_values(values)
+    errors, cov, chi2, dof, mimgs, msgs = _errors(final, datas, values)
+    for k in errors:
+        if last_stage.get(k) in spike_errors:
+            errors[k] = spike_errors[last_stage[k]][k]
+    resids = [np.where(d.mask, d.image - mi, 0.0) for d, mi in zip(datas, mimgs)]
+
+    def one(xs):
+        return xs[0] if n_cap == 1 else xs
+
+    return FitResult(values=values, errors=errors, free=final.free, covariance=cov, chi2=chi2,
+                     dof=dof, status=status, converged=ok, steps=steps,
+                     model_image=one(mimgs), residual=one(resids),
+                     data=one([d.image for d in datas]), mask=one([d.mask for d in datas]),
+                     warnings=notes + msgs, wall_time=time.perf_counter() - t0, stages=log)

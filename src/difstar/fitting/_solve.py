@@ -1,0 +1,350 @@
+"""One solve and its errors: residuals (pixels or spike profiles), the
+Levenberg–Marquardt solve from one start, the Jacobian, covariance and standard errors,
+and :class:`FitResult`."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import gc
+import sys
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._data import FitData, _angle_from, _polar
+from ._model import ImageModel
+from ._params import FitInputError, _from_u, _to_u
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What :func:`fit` found. ``values``: every parameter (fixed ones at their value);
+    ``errors``: standard errors of the free ones, from the Gauss–Newton covariance
+    (JᵀJ)⁻¹ at the optimum, scaled by √(χ²/dof) when that exceeds 1 (``covariance`` is
+    the scaled matrix in the order of ``free``); ``status``: "converged" or why not;
+    ``warnings``: parameters at a bound, unconstrained (zero Jacobian column or a
+    standard error wider than the bounds); ``residual``: data − model (unmasked
+    pixels; 0 elsewhere)."""
+
+    values: dict
+    errors: dict
+    free: list
+    covariance: np.ndarray
+    chi2: float
+    dof: int
+    status: str
+    converged: bool
+    steps: int
+    model_image: np.ndarray | list
+    residual: np.ndarray | list
+    data: np.ndarray | list
+    mask: np.ndarray | list
+    warnings: list
+    wall_time: float
+    stages: list
+
+    @property
+    def chi2_dof(self) -> float:
+        return self.chi2 / max(self.dof, 1)
+
+    @property
+    def residual_rms_peak(self) -> float:
+        """RMS of the residual over the used pixels relative to the data's peak (for
+        several captures: the largest of theirs)."""
+        if isinstance(self.residual, list):
+            return max(_rms_peak(r, d, m) for r, d, m in zip(self.residual, self.data,
+                                                             self.mask))
+        return _rms_peak(self.residual, self.data, self.mask)
+
+    def summary(self) -> str:
+        lines = [f"status: {self.status} ({self.steps} steps, {self.wall_time:.1f} s)",
+                 f"chi2/dof: {self.chi2_dof:.4g} (dof {self.dof}); residual RMS / peak: "
+                 f"{100 * self.residual_rms_peak:.3f} %"]
+        for k in self.free:
+            lines.append(f"  {k:14s} = {self.values[k]:.6g} ± {self.errors[k]:.3g}")
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+def _rms_peak(residual, data, mask) -> float:
+    r = residual[mask]
+    return float(np.sqrt(np.mean(r**2)) / np.max(data[mask]))
+
+class _PixelTarget:
+    """The residuals (model − data)/σ on the data's used pixels."""
+
+    kind = "pixels"
+
+    def __init__(self, data: FitData):
+        self.data = data
+        self.img = jnp.asarray(data.image)
+        self.wgt = jnp.asarray(np.where(data.mask, 1.0 / data.sigma, 0.0))
+        self.n = int(data.mask.sum())
+
+    def __call__(self, model_image, v):
+        return ((model_image - self.img) * self.wgt).ravel()
+
+class SpikeProfiles:
+    """The residuals of the spikes' angular profiles: around each spike direction
+    (``directions``, degrees, [0, 180), from the data), the mean of r²(I − background)
+    over the pixels between ``r_min`` and ``r_max`` data pixels of the star, in bins of
+    ``bin_width`` degrees within ± ``half_width`` (a spike and its opposite one share
+    bins), each window normalised to unit sum, for data and model alike; weighted by the
+    data's σ propagated through the same sums. The same pixels and bins serve both, so
+    the binning's own bias cancels and only the spikes' positions and shapes count, not
+    their brightness: a stage on these residuals fits the rotation and the distortion of
+    the pupil from the spikes' directions alone. ``centre`` (x, y data pixels from the
+    top-left pixel's centre, y down) and ``background`` are held (from earlier stages)."""
+
+    kind = "spikes"
+
+    def __init__(self, data: FitData, centre, background, directions, *, r_min=12.0,
+                 r_max=45.0, half_width=4.0, bin_width=0.25):
+        h, w = data.image.shape
+        r, th = _polar((h, w), (float(centre[0]), float(centre[1])))
+        use = data.mask & (r >= r_min) & (r <= r_max)
+        nb = int(round(2 * half_width / bin_width))
+        rows, cols, vals, window = [], [], [], []
+        b = 0
+        for k, phi in enumerate(directions):
+            off = _angle_from(th, phi)
+            j = np.floor((off + half_width) / bin_width).astype(int)
+            for jb in range(nb):
+                sel = np.flatnonzero((use & (j == jb)).ravel())
+                if sel.size == 0:
+                    continue
+                rows += [b] * sel.size
+                cols += sel.tolist()
+                vals += (r.ravel()[sel] ** 2 / sel.size).tolist()
+                window.append(k)
+                b += 1
+        if b == 0 or len(set(window)) < len(directions):
+            raise FitInputError("spike profiles: no pixel near a spike direction between "
+                                f"r = {r_min} and {r_max} px; check the annulus.")
+        mat = np.zeros((b, h * w))
+        mat[rows, cols] = vals
+        self.window = np.asarray(window)
+        self.n_windows = len(directions)
+        self.mat = jnp.asarray(mat)
+        self.background = float(background)
+        pd = mat @ (data.image - self.background).ravel()
+        sums = np.bincount(self.window, pd, minlength=self.n_windows)
+        if np.any(sums <= 0):
+            raise FitInputError("spike profiles: a spike window has no positive signal; "
+                                "check the directions and the annulus.")
+        self.profile = pd / sums[self.window]
+        sig = np.sqrt((mat**2) @ (data.sigma**2).ravel()) / sums[self.window]
+        self.wgt = jnp.asarray(1.0 / np.maximum(sig, 1e-12 * sig.max()))
+        self.data_profile = jnp.asarray(self.profile)
+        self.n = b
+        self.directions = [float(d) for d in directions]
+
+    def __call__(self, model_image, v):
+        pm = self.mat @ (model_image - v["background"]).ravel()
+        sums = jax.ops.segment_sum(pm, jnp.asarray(self.window), self.n_windows)
+        return (pm / sums[self.window] - self.data_profile) * self.wgt
+
+def _residual_fn(model: ImageModel, data, target):
+    """values → (residual vector, [model image of each capture]) for ``model`` on each
+    of ``data``'s windows (a FitData or a list of them, one ``target`` each)."""
+    datas, targets = _as_list(data), _as_list(target)
+    plans = [model.plan((d.image.shape[0] + 2 * model.pad, d.image.shape[1] + 2 * model.pad),
+                        d.light) for d in datas]
+
+    def res(v):
+        rs, ms = [], []
+        for i, (d, t, plan) in enumerate(zip(datas, targets, plans)):
+            vi = model.capture_values(v, i)
+            m = model.image(vi, d.image.shape, plan, exposure=d.exposure, light=d.light)
+            rs.append(t(m, vi))
+            ms.append(m)
+        return (rs[0] if len(rs) == 1 else jnp.concatenate(rs)), ms
+
+    return res
+
+def model_images(model: ImageModel, values: Mapping[str, float], data) -> list:
+    """The model image of each capture's window at ``values`` (a fit's values, or a
+    result.json's), as a list of arrays; ``data``: a :class:`FitData` or a list of them.
+    Not jitted: for one-off images (a stage's σ or spike directions, a figure)."""
+    datas = _as_list(data)
+    v = {k: jnp.asarray(x, float) for k, x in values.items()}
+    return [np.asarray(m) for m in _residual_fn(model.with_values(values), datas,
+                                                [_PixelTarget(d) for d in datas])(v)[1]]
+
+def values_of_capture(values: Mapping[str, Any], i: int) -> dict:
+    """The values capture ``i`` of a fit saw: ``name@i`` read as ``name`` (a fit's
+    result, or a result.json's values, for any per-capture names)."""
+    tag = f"@{i}"
+    return {**values, **{k[:-len(tag)]: x for k, x in values.items() if k.endswith(tag)}}
+
+def _release_compiled() -> None:
+    """Drop JAX's compiled programs and traces once a stage is done. Each stage (and each
+    re-run of one in a hop) traces new closures over the data and the model's plans;
+    JAX's caches keep their programs, and the constants they hold, after the closures are
+    gone: about 0.4 GB per stage on the JWST star, so a fit and its rough starts ran out
+    of 24 GB. A stage never reuses another's programs, so nothing is compiled twice
+    because of this (other jitted functions of the process compile again on their next
+    call)."""
+    jax.clear_caches()
+    gc.collect()
+
+def _as_list(x):
+    return list(x) if isinstance(x, (list, tuple)) else [x]
+
+def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
+             atol: float, ftol: float = 1e-6, label: str | None = None):
+    """One Levenberg–Marquardt solve of ``model``'s free parameters; with ``label``, a
+    progress bar (tqdm, on stderr) of its steps and χ²."""
+    from .._lm import LMStepper
+
+    free = model.free
+    if not free:
+        raise FitInputError("fit: no free parameter (set free=true on at least one).")
+    fixed = {k: jnp.asarray(p.value, float) for k, p in model.params.items() if not p.free}
+    params = [model.params[k] for k in free]
+    res = _residual_fn(model, data, target)
+
+    def values_of(u):
+        v = dict(fixed)
+        for i, (k, p) in enumerate(zip(free, params)):
+            v[k] = _from_u(p, u[i])
+        return v
+
+    def residuals(u, _):
+        return res(values_of(u))[0]
+
+    residuals = jax.jit(residuals)  # one compile, shared by the check and the solver
+    u0 = jnp.asarray([_to_u(p) for p in params], float)
+    r0 = residuals(u0, None)
+    if not bool(jnp.all(jnp.isfinite(r0))):
+        raise FitInputError("fit: the model is not finite at the start; check the units "
+                            "(wavelength in metres, pixel_scale in arcsec, Zernike in nm).")
+    with _progress_bar(label, max_steps) as progress:
+        sol = LMStepper(residuals, rtol=rtol, atol=atol).solve(
+            u0, None, max_steps=max_steps, ftol=ftol, progress=progress)
+    ok = sol.result == "converged"
+    status = {"converged": "converged", "failed": "not converged: the solver failed",
+              "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
+    vals = {k: float(x) for k, x in values_of(sol.u).items()}
+    return vals, status, ok, sol.steps
+
+@contextlib.contextmanager
+def _progress_bar(label: str | None, max_steps: int):
+    """A ``progress(k, loss, step_size, done)`` for :meth:`LMStepper.solve`: a tqdm bar
+    on stderr named ``label`` (None: no bar), closed when the solve ends."""
+    if label is None:
+        yield None
+        return
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=max_steps, desc=label, unit="step", leave=False, file=sys.stderr,
+               dynamic_ncols=True)
+
+    def progress(k, loss, size, done):
+        bar.update(1)
+        bar.set_postfix_str(f"χ² {2 * loss:.6g}", refresh=False)
+
+    try:
+        yield progress
+    finally:
+        bar.close()
+
+def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
+              residual: bool = True):
+    """The residual's Jacobian over the free parameters (physical units) at ``values``;
+    with ``residual``, also the residual and the model images (one more compile)."""
+    free = model.free
+    base = {k: jnp.asarray(v, float) for k, v in values.items()}
+    resv = _residual_fn(model, data, target)
+
+    def res(x):
+        v = dict(base)
+        for i, k in enumerate(free):
+            v[k] = x[i]
+        return resv(v)
+
+    x0 = jnp.asarray([values[k] for k in free], float)
+    jac = np.asarray(jax.jit(jax.jacfwd(lambda x: res(x)[0]))(x0))
+    if not residual:
+        return jac
+    r, m = jax.jit(res)(x0)
+    return jac, np.asarray(r), [np.asarray(mi) for mi in m]
+
+def _covariance(jac):
+    """(JᵀJ)⁻¹ by a pseudo-inverse of the column-scaled normal matrix, and the columns'
+    norms (0: a parameter the model does not depend on)."""
+    jtj = jac.T @ jac
+    colnorm = np.sqrt(np.diag(jtj))
+    dscale = np.where(colnorm > 0, 1.0 / np.where(colnorm > 0, colnorm, 1.0), 0.0)
+    cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * jtj * dscale[None, :],
+                                           rcond=1e-12) * dscale[None, :]
+    return cov, colnorm
+
+def _errors(model: ImageModel, data, values: Mapping[str, float], target=None):
+    """Gauss–Newton covariance in the physical parameters at ``values``, scaled by
+    χ²/dof when that exceeds 1 (always, for spike profiles: their σ are relative)."""
+    if target is None:
+        target = [_PixelTarget(d) for d in _as_list(data)]
+    free = model.free
+    jac, r, m = _jacobian(model, data, values, target)
+    chi2 = float(r @ r)
+    dof = sum(t.n for t in _as_list(target)) - len(free)
+    kinds = {t.kind for t in _as_list(target)}
+    cov, colnorm = _covariance(jac)
+    msgs = []
+    for k, c in zip(free, colnorm):
+        if not c > 1e-12 * max(colnorm.max(), 1e-300):
+            msgs.append(f"{k}: unconstrained (the model does not depend on it: zero "
+                        "Jacobian column); fix it.")
+    red = chi2 / max(dof, 1)
+    cov = cov * (max(red, 1.0) if kinds == {"pixels"} else red)
+    err = np.sqrt(np.maximum(np.diag(cov), 0))
+    errors = {}
+    for i, k in enumerate(free):
+        errors[k] = float(err[i]) if colnorm[i] > 0 else float("inf")
+        p = model.params[k]
+        if p.bounds is not None:
+            lo, hi = p.bounds
+            if errors[k] > (hi - lo):
+                msgs.append(f"{k}: poorly constrained (standard error {errors[k]:.3g} is "
+                            f"wider than its bounds {p.bounds}).")
+            if min(values[k] - lo, hi - values[k]) < 1e-3 * (hi - lo):
+                msgs.append(f"{k} = {values[k]:.6g} is at a bound {p.bounds}: widen it or "
+                            "check the start.")
+    return errors, cov, chi2, dof, m, msgs
+
+def noise_limited_errors(model: ImageModel, data: FitData, values: Mapping[str, float],
+                         sigmas: Sequence[Any]) -> list[dict[str, float]]:
+    """The Cramér–Rao standard errors of ``model``'s free parameters at ``values``, one
+    dict for each per-pixel σ in ``sigmas`` (arrays shaped like ``data.image``, finite and
+    > 0 on its used pixels): √diag((Jᵀ Σ⁻¹ J)⁻¹), J the model image's Jacobian over the
+    used pixels. The least standard error any unbiased fit of these pixels can have, if
+    the model were exact and the noise Gaussian with that σ: noise alone, no mismatch,
+    not scaled by χ²/dof. The Jacobian is computed once; each σ costs a p × p inverse.
+    For a star ``f`` times fainter in the same units, σ² = (f · read)² + f · I / gain
+    (the fainter star's noise scaled back up to this star's brightness)."""
+    if isinstance(data, list):
+        raise FitInputError("noise_limited_errors: one FitData (one capture), not a list.")
+    free = model.free
+    if not free:
+        raise FitInputError("noise_limited_errors: the model has no free parameter.")
+    unit = dataclasses.replace(data, sigma=np.ones_like(data.image))
+    jac = _jacobian(model, unit, values, [_PixelTarget(unit)], residual=False)
+    out = []
+    for i, sig in enumerate(sigmas):
+        sig = np.asarray(sig, float)
+        if sig.shape != data.image.shape:
+            raise FitInputError(f"noise_limited_errors: sigmas[{i}] has shape {sig.shape}; "
+                                f"the data's is {data.image.shape}.")
+        used = sig[data.mask]
+        if not np.all(np.isfinite(used) & (used > 0)):
+            raise FitInputError(f"noise_limited_errors: sigmas[{i}] must be finite and > 0 "
+                                "on every used pixel.")
+        cov, colnorm = _covariance(jac / np.where(data.mask, sig, 1.0).reshape(-1, 1))
+        err = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        out.append({k: float(e) if c > 0 else float("inf")
+                    for k, e, c in zip(free, err, colnorm)})
+    return out
