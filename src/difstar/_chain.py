@@ -49,8 +49,8 @@ from ._model import (
     geometry_of as geometry_of,
 )
 from ._otf import otf
-from ._radiometry import radiometry
 from ._psf_engine import SamplingError as SamplingError
+from ._radiometry import radiometry
 from ._sampling_rules import (
     check_sampling as check_sampling,
 )

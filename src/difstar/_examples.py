@@ -15,10 +15,11 @@ Values the paper does not print are assumptions, stated here:
   configuration"), ``PAPER["phi0"]`` is stated per configuration, in seconds at that
   configuration's aperture and focus, and :func:`paper_camera` converts it once to the
   reference-pupil φ0 the Sensor takes (:func:`difstar.phi0_from_configuration`), so
-  both examples render exactly as they did before the image followed the f-number; with R and B at half the
-  green response (φ0 ∝ the white balance) so the paper's white balance [2, 1, 2] makes
-  the white source neutral in camera RGB, and the toe of R and B at half the green one
-  (toe ∝ 1/white balance: the same toe in white-balanced exposure), so the source stays
+  both examples render exactly as they did before the image followed the f-number;
+  with R and B at half the green response (φ0 ∝ the white balance) so the paper's
+  white balance [2, 1, 2] makes the white source neutral in camera RGB, and the toe
+  of R and B at half the green one (toe ∝ 1/white balance: the same toe in
+  white-balanced exposure), so the source stays
   neutral at every exposure level (with one toe for all channels, the dim spikes of R
   and B, recorded at half the green exposure, lose more to the toe and render green);
 - colour matrix: camera RGB → sRGB fitted from measured Nikon D7000 sensitivities (the
