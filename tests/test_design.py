@@ -232,6 +232,7 @@ def test_lbfgsb_agrees_with_scipy_on_a_coupled_bounded_problem():
     np.testing.assert_array_equal(got[active], ref.x[active])  # exactly on the bound
 
 
+@pytest.mark.slow
 def test_lbfgsb_recovers_the_iris_of_a_target_starburst():
     # the target is the PSF of a known iris inside the box: the objective's minimum (0) is
     # that iris, whatever difstar's PSF accuracy. (Its parameters are not unique: at a
@@ -303,3 +304,5 @@ def test_bad_optimiser_and_constraints_are_refused_by_name():
         LBFGSB(history=0)
     with pytest.raises(InputError, match=r"LBFGSB.tol"):
         LBFGSB(tol=-1.0)
+    with pytest.raises(InputError, match=r"LBFGSB.first_step"):
+        LBFGSB(first_step=0.0)

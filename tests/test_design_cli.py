@@ -228,7 +228,7 @@ def test_bad_optimiser_flag_is_refused_before_computing(tmp_path, capsys, monkey
 def test_study_with_lbfgsb_keeps_the_bounds():
     from difstar._design_cli import iris_study
 
-    r = iris_study(quick=True, steps=3, optimiser="lbfgsb", max_curvature=0.4,
+    r = iris_study(quick=True, steps=8, optimiser="lbfgsb", max_curvature=0.4,
                    vertex_bound=0.01, log=lambda m: None)
     assert r["config"]["optimiser"] == "lbfgsb"
     p = r["params"]

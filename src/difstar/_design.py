@@ -439,27 +439,35 @@ class Box(eqx.Module):
 
 class LBFGSB(eqx.Module):
     """Bound-constrained quasi-Newton (L-BFGS-B, ``jaxopt.LBFGSB``) for :func:`design`,
-    working in the bounded parameters themselves: no sigmoid map, so a parameter can sit
-    exactly on its bound (where the optimum of a bounded design often is) and every
-    iterate stays inside the :class:`Box` (each step ends on the segment from the
-    iterate to a point of the box; rounding is clipped off).
+    working in the bounded parameters themselves (each as its fraction of its range, an
+    affine rescaling): no sigmoid map, so a parameter can sit exactly on its bound
+    (where the optimum of a bounded design often is) and every iterate stays inside the
+    :class:`Box` (each step ends on the segment from the iterate to a point of the box;
+    rounding is clipped off).
 
     history: correction pairs kept (the memory of the Hessian approximation).
     tol: stop once the projected gradient's largest component is at most ``tol`` (in
-        the objective's units per parameter unit); 0 (the default) runs every step but
-        still stops when a line search can no longer lower the objective.
+        the objective's units per parameter range); 0 (the default) runs every step,
+        but a line search that cannot lower the objective twice running (the second
+        time from the projected gradient, the memory dropped) also stops it.
     max_linesearch: objective evaluations per line search at most.
+    first_step: the first step's largest move, as a fraction of that parameter's range
+        (the quasi-Newton matrix starts as a multiple of the identity, so the objective's
+        units would set it otherwise); later steps are scaled by the curvature seen.
 
-    Each iteration is one line search (usually one objective-and-gradient evaluation;
-    more when the step has to be shortened). The first step is the plain projected
-    gradient, so its length is set by the objective's scale; later steps are scaled by
-    the curvature seen so far. jaxopt is no longer maintained (its authors point to
-    optax); its import-time DeprecationWarning is silenced here, where it is imported.
+    Each iteration is one line search (usually one objective-and-gradient evaluation
+    and, in jaxopt, one value-only evaluation at its start; more when the step has to be
+    shortened). Compiling the step takes several times as long as an Adam step (jaxopt's
+    line search holds the objective in several branches): it pays on longer runs and on
+    optima on the bounds (BENCHMARKS.md, "Design optimisers"). jaxopt is no longer
+    maintained (its authors point to optax, which has no bound-constrained L-BFGS); its
+    import-time DeprecationWarning is silenced where it is imported, in :meth:`solver`.
     """
 
     history: int = eqx.field(static=True, default=10)
     tol: Real = eqx.field(static=True, default=0.0)
     max_linesearch: int = eqx.field(static=True, default=30)
+    first_step: Real = eqx.field(static=True, default=0.1)
 
     def __check_init__(self):
         from ._validate import check_number
@@ -470,6 +478,8 @@ class LBFGSB(eqx.Module):
                      fix="a projected-gradient tolerance, or 0 to run every step")
         check_number(self.max_linesearch, "LBFGSB.max_linesearch", integer=True, ge=1,
                      le=1000, fix="objective evaluations per line search, e.g. 30")
+        check_number(self.first_step, "LBFGSB.first_step", gt=0, le=1,
+                     fix="a fraction of the parameters' ranges, e.g. 0.1")
 
     def solver(self, loss: Callable):
         """The ``jaxopt.LBFGSB`` minimising ``loss(params) -> (value, aux)``."""
@@ -562,7 +572,7 @@ def design(
     objective: Callable,
     params0,
     *,
-    constraints: Box | None = None,
+    constraints: Any = None,
     optimiser=None,
     steps: int = 100,
     callback: Callable | None = None,
@@ -680,14 +690,15 @@ def _unit_box(bounds):
 def _run_lbfgsb(fn, params0, bounds, optimiser: LBFGSB, steps, record, callback):
     """L-BFGS-B from ``params0`` (projected into the bounds: a copy, the input is not
     touched), one compiled iteration at a time (an attempt whose line search fails
-    counts as one), on the parameters as fractions of their
-    ranges (:func:`_unit_box`) and on the objective divided by its start's largest
-    gradient component there, so that the first step (a projected gradient step: the
-    quasi-Newton matrix starts as the identity) can cross the whole box instead of a
-    length set by the objective's units. Stops after ``steps`` iterations, when the
-    projected gradient is within ``optimiser.tol`` (in the objective's own units per
-    unit range), when a line search fails right after a restart from the projected
-    gradient (no lower value along either step) or when ``callback`` returns True."""
+    counts as one), on the parameters as fractions of their ranges (:func:`_unit_box`)
+    and on the objective scaled so that its start's largest gradient component there
+    is ``optimiser.first_step``: the first step (a projected gradient step: the
+    quasi-Newton matrix starts as the identity) then moves that parameter by that
+    fraction of its range, not by a length set by the objective's units. Stops after
+    ``steps`` iterations, when the projected gradient is within ``optimiser.tol`` (in
+    the objective's own units per range), when a line search fails right after a
+    restart from the projected gradient (no lower value along either step) or when
+    ``callback`` returns True."""
     to_params, to_unit, unit = _unit_box(bounds)
 
     def scaled(t, scale):
@@ -698,7 +709,7 @@ def _run_lbfgsb(fn, params0, bounds, optimiser: LBFGSB, steps, record, callback)
     t = to_unit(jax.tree.map(jnp.asarray, params0))
     g0 = eqx.filter_jit(jax.grad(lambda t_: fn(to_params(t_))[0]))(t)
     g_max = max((float(jnp.max(jnp.abs(g))) for g in jax.tree.leaves(g0)), default=0.0)
-    scale = jnp.asarray(1.0 / g_max if g_max > 0 else 1.0)
+    scale = jnp.asarray(optimiser.first_step / g_max if g_max > 0 else 1.0)
     state = eqx.filter_jit(solver.init_state)(t, unit, scale)
     extra = 1  # the gradient that set the scale
 

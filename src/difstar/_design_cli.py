@@ -214,7 +214,7 @@ def study_start(family, curvature, vertex_bound: float):
                          angular=0.1 * vertex_bound * np.cos(1.7 * k))
 
 
-def measure(family, setup, params, opts) -> dict:
+def measure(family, setup, params, opts) -> tuple:
     """Every reported measure of one design (concrete floats), with its focused and
     defocused PSFs and its outline."""
     import equinox as eqx
