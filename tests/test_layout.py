@@ -34,7 +34,6 @@ OVER_LIMIT = {
     "difstar._design": 805,
     "difstar._design_cli": 873,
     "difstar._fit_cli": 883,
-    "difstar._pupil": 1241,
     "difstar._validate": 663,
     "difstar.io._output": 658,
 }
