@@ -333,3 +333,46 @@ def test_one_fit_with_its_jacobian_shared_out_over_host_devices():
     for d in (2, 4):
         assert r[f"mesh_{d}"] == d, r
         assert r[f"jac_{d}"] < 1e-12 and r[f"du_{d}"] < 1e-10 and r[f"loss_{d}"] < 1e-12, r
+
+
+def test_curved_iris_and_zernike_parameters_move_the_model_as_finite_differences_say():
+    """With ``curvature`` and ``z11`` the RAW fitter's pupil is a CurvedIris and its lens
+    carries a Zernike wavefront; the Jacobian's columns of both equal central finite
+    differences of the residuals (and are not zero)."""
+    cc = F.CameraConstants(**{**CC.__dict__, "zernike_radius": R})
+    extra = (F.ParamSpec("curvature", (), True, 0.4, -0.2, 1.0),
+             F.ParamSpec("z11", (), True, 60e-9, -200e-9, 200e-9))
+    model = _model(extra=extra)
+    model = F.FitModel(cc, model.configs, model.captures, model.params)
+    x = F.from_unconstrained(model, F.to_unconstrained(model))
+    camera, scene, _, _ = F.camera_scene(model, x, "c")
+    with pytest.raises(ValueError, match="wavefront"):  # the FFT grid has no wavefront
+        difstar.simulate(camera, scene, model.configs[0].grid)
+    grid = difstar.choose_grid(camera, scene, crop=(64, 64), raw_only=True)
+    assert grid.method == "engine"
+    cfg = F.ConfigSpec("c", 1.0, 1.0, grid)
+    model = F.FitModel(cc, (cfg,), model.captures, model.params)
+    assert isinstance(F.pupil_of(model, x), difstar.CurvedIris)
+    assert F.wavefront_of(model, x).indices == (11,)
+    fitter, data = _data(model, noise_sigma=1e-3)
+    args = F.make_args(model, data)
+    fn = jax.jit(F.make_residual_fn(model))
+    u = F.to_unconstrained(model)
+    jac = jax.jacfwd(lambda v: jnp.concatenate([r.ravel() for r in
+                                                jax.tree_util.tree_leaves(fn(v, args))]))(u)
+    names = [p.name for p in model.free]
+    for name in ("curvature", "z11"):
+        i = sum(p.size for p in model.free[: names.index(name)])
+        e = np.zeros(u.shape)
+        e[i] = 1e-4
+
+        def flat(v):
+            return np.concatenate([np.asarray(r).ravel()
+                                   for r in jax.tree_util.tree_leaves(fn(v, args))])
+
+        fd = (flat(u + e) - flat(u - e)) / 2e-4
+        col = np.asarray(jac[:, i])
+        assert np.abs(col).max() > 1e-3, name
+        np.testing.assert_allclose(col, fd, atol=2e-4 * np.abs(col).max(), err_msg=name)
+    with pytest.raises(ValueError, match="zernike_radius"):
+        F.wavefront_of(F.FitModel(CC, model.configs, model.captures, model.params), x)

@@ -119,3 +119,28 @@ def test_roi_origin_even_and_inside():
     with pytest.raises(ValueError, match="does not fit"):
         roi_origin((10, 10), (64, 64), (32, 32))
     assert np.isfinite(r)
+
+
+def test_curved_iris_and_zernike_parameters():
+    """curvature and z<j> are parameters; a z<j> needs camera.zernike_radius."""
+    d = copy.deepcopy(BASE)
+    d["parameters"]["curvature"] = {"free": True, "start": 0.4, "bounds": [0.0, 1.0]}
+    d["parameters"]["z11"] = {"free": True, "start": 5e-8, "bounds": [-2e-7, 2e-7]}
+    _err(d, r"field camera/zernike_radius: the Zernike parameters \['z11'\] need")
+    d["camera"]["zernike_radius"] = 1.2e-3
+    man = manifest_from_dict(d, path="/x/m.json")
+    assert man.parameters["curvature"]["shape"] == () and man.parameters["z11"]["shape"] == ()
+    d["parameters"]["z1"] = {"start": 0.0}  # piston is not a parameter
+    _err(d, r"field parameters")
+
+
+def test_truth_block_for_captures_made_elsewhere():
+    d = copy.deepcopy(BASE)
+    d["truth"] = {"made_by": "elsewhere", "values": {"circumradius": 1.25e-3, "defocus/c": 0.0011}}
+    man = manifest_from_dict(d, path="/x/m.json")
+    assert man.synthetic is None and set(man.truth) == {"circumradius", "defocus/c"}
+    d["truth"]["values"]["nope"] = 1.0
+    _err(d, r"field truth/values/nope: not a parameter")
+    d = copy.deepcopy(BASE)
+    d["truth"] = {"values": {"circumradius": [1.0, 2.0]}}
+    _err(d, r"field truth/values/circumradius")

@@ -133,6 +133,15 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     ``camera`` and ``scene``. When called with concrete values it first checks the
     sampling rules and raises :class:`SamplingError` naming the rule and the fix.
     """
+    if grid.method != "engine" and (camera.lens.wavefront is not None
+                                    or camera.sensor.spectral_weights is not None):
+        # the other paths model one wavelength per channel and no wavefront: refuse
+        # rather than silently drop them (structure, not values: decided at trace time)
+        raise ValueError(
+            f"simulate: Grid.method={grid.method!r} models one wavelength per channel and no "
+            "wavefront error, but this camera has a lens wavefront or a spectral sensor; use "
+            "difstar.choose_grid(camera, scene, crop=...) (it picks method='engine') or "
+            "Grid(method='engine', psf_plan=..., source_window=...).")
     check_sampling(camera, scene, grid)
     g = geometry_of(camera, scene)
     sen = camera.sensor

@@ -53,13 +53,14 @@ from ._image import DiscSource
 from ._lm import LMStepper, SolveResult
 from ._pupil import Polygon, RegularPolygon
 from ._pupil_curved import CurvedIris
-from ._zernike import Zernike
 from ._sensor import Response, response_curve
+from ._zernike import Zernike
 
 SHARED = ("circumradius", "curvature", "rotation", "vertex_radial", "vertex_angular",
           "source_radius", "phi0", "toe", "knee", "background")
 UNITS = {
-    "circumradius": "m", "curvature": "1", "zernike": "m", "rotation": "rad", "vertex_radial": "1", "vertex_angular": "rad",
+    "circumradius": "m", "curvature": "1", "zernike": "m", "rotation": "rad",
+    "vertex_radial": "1", "vertex_angular": "rad",
     "defocus": "m", "source_radius": "m", "source_offset": "px", "phi0": "s", "toe": "1",
     "knee": "1", "background": "1", "exposure_scale": "1",
 }

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from difstar._fit_truth import compare_truth, perturbed_starts
 from difstar.fitting._params import PERTURB  # starts within ± 20 %: one figure for both fitters
 
 SATURATION_GUARD = 4.0  # also mask pixels expected within this many σ of the white level
@@ -46,6 +47,7 @@ def camera_constants(man):
         wavelengths=tuple(float(w) for w in c["wavelengths"]), n_blades=int(c["blades"]),
         white_balance=tuple(float(w) for w in c["white_balance"]),
         colour_matrix=None if "colour_matrix" not in c else tuple(map(tuple, c["colour_matrix"])),
+        zernike_radius=None if "zernike_radius" not in c else float(c["zernike_radius"]),
     )
 
 
@@ -96,9 +98,14 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
         reach = 0 if off is None or not off.free else int(np.ceil(np.max(np.abs(
             np.concatenate([off.lo, off.hi])))))
         src = g.source_window + 2 * reach if g.source_window else 0
-        configs.append(dataclasses.replace(dummy, grid=Grid(
-            n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz, raw_only=True,
-            pupil_window=g.pupil_window, source_window=src if src < g.n else 0)))
+        if g.method == "engine":  # difstar.psf's engine on exactly the crop's offsets
+            grid = Grid(n=g.n, crop=crop, use_defocus=use_dz, raw_only=True, method="engine",
+                        source_window=src, psf_plan=g.psf_plan)
+        else:
+            grid = Grid(n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz,
+                        raw_only=True, method=g.method, pupil_window=g.pupil_window,
+                        source_window=src if src < g.n else 0)
+        configs.append(dataclasses.replace(dummy, grid=grid))
     return FitModel(cc, tuple(configs), caps, tuple(params))
 
 
@@ -218,6 +225,41 @@ def seconds_since_process_start() -> float | None:
         return None
 
 
+def photometric_start(model, caps, u0):
+    """``u0`` with a free φ0 set, per channel, so that the model's linear image at ``u0``
+    carries the light of the unsaturated pixels in the linear range (ζ < 0.7) of the
+    data: φ0 = Σ C·t / Σ ζ over those pixels. The exposure scale's start then no longer
+    depends on the camera's units (a wrong start by orders of magnitude saturates or
+    blanks the whole prediction, where the solver cannot move it); left alone when φ0
+    is fixed."""
+    from difstar._cfa import bayer_masks_np
+    from difstar._fit import from_unconstrained, predict, to_unconstrained
+
+    spec = model.param.get("phi0")
+    if spec is None or not spec.free:
+        return u0
+    x = from_unconstrained(model, u0)
+    pred = predict(model, x, full=True)
+    num = np.zeros(3)
+    den = np.zeros(3)
+    for cfg in model.configs:
+        caps_c = model.captures_of(cfg.name)
+        img = np.asarray(pred[cfg.name].image)  # (K, 3, h, w)
+        masks = bayer_masks_np(img.shape[-2:], model.camera.pattern).astype(bool)  # (3, h, w)
+        for k, c in enumerate(caps_c):
+            z = np.asarray(caps[c.name]["zeta"])
+            ok = ~np.asarray(caps[c.name]["saturated"]) & (z < 0.7)
+            t = c.exposure_time
+            for ch in range(3):
+                m = masks[ch] & ok
+                num[ch] += np.sum(img[k, ch][m]) * t
+                den[ch] += np.sum(z[m])
+    phi0 = np.where((num > 0) & (den > 0), num / np.maximum(den, 1e-300), x["phi0"])
+    phi0 = np.clip(phi0, spec.lo * (1 + 1e-6), spec.hi * (1 - 1e-6))
+    values = {p.name: np.asarray(x[p.name]) for p in model.free} | {"phi0": phi0}
+    return to_unconstrained(model, values)
+
+
 def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = True):
     """Stage 1: the response curves (toe, knee) held at their starts, σ from the
     observed values; stage 2 (repeated ``reweight`` times): everything free, σ from the
@@ -331,49 +373,6 @@ def exposure_range(fitter, model, u, caps) -> tuple[float, float]:
     return float(min(los)), float(max(his))
 
 
-def compare_truth(model, x_fit: dict, truth: dict, h_range) -> dict:
-    """Errors against the truth and the issue's pass criteria."""
-    from difstar._fit import response_error, wrap_rotation
-
-    n = model.camera.n_blades
-    out = {}
-    free = {p.name for p in model.free}
-    dz_scale = max([abs(float(truth[k])) for k in truth if k.startswith("defocus/")] or [0.0])
-    for name in free:
-        t, f = np.asarray(truth[name], float), np.asarray(x_fit[name], float)
-        if name == "rotation":
-            err = float(np.rad2deg(wrap_rotation(f - t, n)))
-            out[name] = {"error_deg": err, "pass": abs(err) <= 0.2, "criterion": "|Δ| ≤ 0.2°"}
-        elif name == "circumradius":
-            rel = float((f - t) / t)
-            out[name] = {"rel_error": rel, "pass": abs(rel) <= 5e-3, "criterion": "≤ 0.5 %"}
-        elif name.startswith("defocus/"):
-            if abs(float(t)) > 0:
-                rel = float((f - t) / t)
-                out[name] = {"rel_error": rel, "pass": abs(rel) <= 1e-2, "criterion": "≤ 1 %"}
-            else:
-                err = float(f - t)
-                out[name] = {"abs_error_m": err, "pass": abs(err) <= 1e-2 * dz_scale,
-                             "criterion": "|Δ| ≤ 1 % of the largest true |Δz|"}
-        elif name == "phi0":
-            rel = ((f - t) / t).tolist()
-            out[name] = {"rel_error": rel, "pass": bool(np.all(np.abs(rel) <= 1e-2)),
-                         "criterion": "≤ 1 % per channel"}
-        else:
-            den = np.where(np.abs(t) > 0, np.abs(t), 1.0)
-            out[name] = {"error": (f - t).tolist(), "rel_error": ((f - t) / den).tolist()}
-    if {"phi0", "toe", "knee"} & free:
-        err = response_error(x_fit, truth, h_range)
-        out["response_curves"] = {
-            "max_error_fraction_of_range": err.tolist(), "pass": bool(np.all(err <= 1e-2)),
-            "criterion": "max |ζ_fit(H) − ζ_true(H)| ≤ 1 % of the range, per channel, over "
-                         f"H = C·t in [{h_range[0]:.3g}, {h_range[1]:.3g}] s",
-        }
-    crit = [v["pass"] for v in out.values() if "pass" in v]
-    out["all_pass"] = bool(all(crit))
-    return out
-
-
 def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, fitter=None,
                  devices=None):
     """Fit once. Returns (result document, model, caps, fitter, u). ``devices``: share
@@ -390,6 +389,7 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
                         atol=man.solver["atol"], devices=devices)
     if u0 is None:
         u0 = to_unconstrained(model)
+    u0 = photometric_start(model, caps, u0)
     if verbose:
         _log(f"difstar fit: {len(model.captures)} captures, {model.n_free} free parameters, "
              f"grids " + ", ".join(f"{c.name}: n = {c.grid.n}, crop = {c.grid.crop}"
@@ -431,9 +431,9 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
         "jax": {"version": jax.__version__, "backend": jax.default_backend(),
                 "x64": bool(jax.config.jax_enable_x64)},
     }
-    if man.synthetic is not None:
+    if man.truth is not None:
         h_range = exposure_range(fitter, model, u, caps)
-        result["truth_comparison"] = compare_truth(model, x, man.synthetic["truth"], h_range)
+        result["truth_comparison"] = compare_truth(model, x, man.truth, h_range, se)
     return result, model, caps, fitter, u
 
 
@@ -559,18 +559,6 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
 
 
 # ---------------------------------------------------------------- recovery study
-
-def perturbed_starts(man, model, rng) -> dict:
-    truth = man.synthetic["truth"]
-    out = {}
-    for p in model.free:
-        t = np.asarray(truth[p.name], float)
-        scale = np.maximum(np.abs(t), man.parameters[p.name]["perturb_scale"])
-        v = t + rng.uniform(-PERTURB, PERTURB, p.shape) * scale
-        span = p.hi - p.lo
-        out[p.name] = np.clip(v, p.lo + 1e-3 * span, p.hi - 1e-3 * span)
-    return out
-
 
 def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None) -> dict:
     """Fit from ``n_starts`` perturbed starts. With ``devices`` (or ``DIFSTAR_DEVICES``)
@@ -804,8 +792,9 @@ def _cmd_fit(a) -> int:
         man.solver["max_steps"] = a.max_steps
     inputs = [man.path] + [c.path for c in man.captures]
     if a.recovery_study:
-        if man.synthetic is None:
-            raise SceneError(f"{man.path}: field synthetic: --recovery-study needs the truth")
+        if man.truth is None:
+            raise SceneError(f"{man.path}: field truth: --recovery-study needs the true values "
+                             "(a `synthetic` block, or `truth` for captures made elsewhere)")
         out = Path(a.out) if a.out else man.folder / "recovery"
         check_output_free(out, overwrite=a.overwrite, inputs=inputs)
         with output_dir(out, overwrite=a.overwrite, inputs=inputs, command="fit") as tmp:
