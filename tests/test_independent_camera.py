@@ -13,10 +13,9 @@ import math
 
 import numpy as np
 import pytest
-
-import difstar
 import raw_generator as G
 
+import difstar
 
 
 @pytest.mark.parametrize("curvature", [0.0, 0.5, 1.0, -0.2])
