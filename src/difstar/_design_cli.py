@@ -616,28 +616,25 @@ def plot_study(result: dict, path_prefix: Path) -> list[str]:
 
     names = list(result["psfs"])
     files = []
-    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.4))
-    for ax, name in zip(axes, names):
-        p = result["psfs"][name][0]
-        ax.imshow(np.log10(np.maximum(p / p.max(), 1e-8)), vmin=-7, vmax=0, cmap="magma")
-        ax.set_title(f"{name}\naniso {result['rows'][name]['halo_anisotropy']:.2e}", fontsize=9)
-        ax.axis("off")
-    fig.suptitle("focused PSF, log10 (1e-7 … peak)")
-    fig.tight_layout()
-    fig.savefig(path_prefix / "psfs.png", dpi=110)
-    plt.close(fig)
-    files.append("psfs.png")
-    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.4))
-    for ax, name in zip(axes, names):
-        d = result["psfs"][name][1]
-        ax.imshow(d / d.max(), cmap="gray")
-        ax.set_title(f"{name}\nCV {result['rows'][name]['bokeh_cv']:.4f}", fontsize=9)
-        ax.axis("off")
-    fig.suptitle("defocused highlight (bokeh), linear")
-    fig.tight_layout()
-    fig.savefig(path_prefix / "bokeh.png", dpi=110)
-    plt.close(fig)
-    files.append("bokeh.png")
+    panels = (("psfs.png", "focused PSF, log scale", "log10(PSF / its peak)", "magma", -7),
+              ("bokeh.png", "defocused highlight (bokeh), linear", "intensity / its peak",
+               "gray", 0))
+    for k, (file, title, unit, cmap, vmin) in enumerate(panels):  # one shared scale each
+        fig, axes = plt.subplots(1, len(names), figsize=(3.4 * len(names), 3.4),
+                                 layout="constrained")
+        for ax, name in zip(axes, names):
+            p = result["psfs"][name][k] / result["psfs"][name][k].max()
+            shown = ax.imshow(np.log10(np.maximum(p, 1e-8)) if k == 0 else p, vmin=vmin,
+                              vmax=0 if k == 0 else 1, cmap=cmap)
+            row = result["rows"][name]
+            ax.set_title(f"{name}\n" + (f"aniso {row['halo_anisotropy']:.2e}" if k == 0
+                                        else f"CV {row['bokeh_cv']:.4f}"), fontsize=9)
+            ax.axis("off")
+        fig.colorbar(shown, ax=axes, label=unit, shrink=0.85)
+        fig.suptitle(title)
+        fig.savefig(path_prefix / file, dpi=110)
+        plt.close(fig)
+        files.append(file)
     fig, ax = plt.subplots(figsize=(4.5, 4.5))
     for name in names:
         o = result["outlines"][name] * 1e3
