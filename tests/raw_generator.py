@@ -351,8 +351,8 @@ def write_campaign(out, camp: Campaign = CURVED_IRIS, *, seed: int = 0, roi=(96,
         "curvature": {"free": True, "start": iris.curvature, "bounds": [-0.2, 1.0],
                       "perturb_scale": 0.1},
         "rotation": {"free": True, "start": iris.rotation, "bounds": [-0.3, 0.5]},
-        "z11": {"free": True, "start": iris.spherical, "bounds": [-400e-9, 400e-9],
-                "perturb_scale": 50e-9},
+        "z11": {"free": True, "start": iris.spherical * 1e9, "bounds": [-400.0, 400.0],
+                "perturb_scale": 50.0},
         "source_radius": {"free": True, "start": camp.source_radius,
                           "bounds": [0.05e-3, 0.6e-3]},
         "phi0": {"free": True, "start": [1.0, 1.0, 1.0], "bounds": [1e-4, 1e4]},
@@ -369,7 +369,7 @@ def write_campaign(out, camp: Campaign = CURVED_IRIS, *, seed: int = 0, roi=(96,
         params[f"source_offset/{c.name}"] = {"free": True, "start": [0.0, 0.0],
                                              "bounds": [-3, 3], "perturb_scale": 2}
     values = {"circumradius": iris.circumradius, "curvature": iris.curvature,
-              "rotation": iris.rotation, "z11": iris.spherical,
+              "rotation": iris.rotation, "z11": iris.spherical * 1e9,
               "source_radius": camp.source_radius}
     values |= {f"defocus/{k}": v if abs(v) > 1e-12 else 0.0 for k, v in dz.items()}
     values |= {f"source_offset/{k}": v for k, v in offsets.items()}

@@ -341,7 +341,7 @@ def test_curved_iris_and_zernike_parameters_move_the_model_as_finite_differences
     differences of the residuals (and are not zero)."""
     cc = F.CameraConstants(**{**CC.__dict__, "zernike_radius": R})
     extra = (F.ParamSpec("curvature", (), True, 0.4, -0.2, 1.0),
-             F.ParamSpec("z11", (), True, 60e-9, -200e-9, 200e-9))
+             F.ParamSpec("z11", (), True, 60.0, -200.0, 200.0))  # nm RMS
     model = _model(extra=extra)
     model = F.FitModel(cc, model.configs, model.captures, model.params)
     x = F.from_unconstrained(model, F.to_unconstrained(model))

@@ -125,7 +125,7 @@ def test_curved_iris_and_zernike_parameters():
     """curvature and z<j> are parameters; a z<j> needs camera.zernike_radius."""
     d = copy.deepcopy(BASE)
     d["parameters"]["curvature"] = {"free": True, "start": 0.4, "bounds": [0.0, 1.0]}
-    d["parameters"]["z11"] = {"free": True, "start": 5e-8, "bounds": [-2e-7, 2e-7]}
+    d["parameters"]["z11"] = {"free": True, "start": 50.0, "bounds": [-200.0, 200.0]}
     _err(d, r"field camera/zernike_radius: the Zernike parameters \['z11'\] need")
     d["camera"]["zernike_radius"] = 1.2e-3
     man = manifest_from_dict(d, path="/x/m.json")

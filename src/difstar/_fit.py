@@ -19,8 +19,9 @@ Parameters (name → shape, unit):
 - ``circumradius`` (), m — exit-pupil circumradius of the regular n-gon;
 - ``curvature`` (), 1 — every blade's relative edge curvature R·κ (present: the iris is a
   :class:`difstar.CurvedIris`, 0 straight, 1 the circumscribed circle; absent: straight);
-- ``z<j>`` (), m RMS — the Noll-``j`` Zernike term of the wavefront (j ≥ 2; e.g. ``z11``
-  spherical aberration), normalised over a circle of the camera's ``zernike_radius``;
+- ``z<j>`` (), nm RMS — the Noll-``j`` Zernike term of the wavefront (j ≥ 2; e.g. ``z11``
+  spherical aberration), normalised over a circle of the camera's ``zernike_radius``
+  (nm, as in image-fit manifests);
 - ``rotation`` (), rad — angle of the first vertex (a regular n-gon is only defined
   modulo 2π/n; :func:`wrap_rotation` compares angles accordingly);
 - ``vertex_radial`` (n,), fraction of the circumradius, and ``vertex_angular`` (n,),
@@ -59,7 +60,7 @@ from ._zernike import Zernike
 SHARED = ("circumradius", "curvature", "rotation", "vertex_radial", "vertex_angular",
           "source_radius", "phi0", "toe", "knee", "background")
 UNITS = {
-    "circumradius": "m", "curvature": "1", "zernike": "m", "rotation": "rad",
+    "circumradius": "m", "curvature": "1", "zernike": "nm", "rotation": "rad",
     "vertex_radial": "1", "vertex_angular": "rad",
     "defocus": "m", "source_radius": "m", "source_offset": "px", "phi0": "s", "toe": "1",
     "knee": "1", "background": "1", "exposure_scale": "1",
@@ -275,8 +276,8 @@ def pupil_of(model: FitModel, x: dict):
 
 
 def wavefront_of(model: FitModel, x: dict):
-    """The Zernike wavefront of the ``z<j>`` parameters (metres RMS), or None."""
-    terms = {zernike_index(k): v for k, v in x.items() if zernike_index(k) is not None}
+    """The Zernike wavefront of the ``z<j>`` parameters (nm RMS), or None."""
+    terms = {zernike_index(k): 1e-9 * v for k, v in x.items() if zernike_index(k) is not None}
     if not terms:
         return None
     if model.camera.zernike_radius is None:
