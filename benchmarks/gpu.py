@@ -15,6 +15,10 @@ JAX's default — the GPU where there is one — and ``cpu`` for the ``--cpu-too
   ``benchmarks/psf_plain_call.py``), jitted with its plan made once;
 - ``simulate``: ``difstar.simulate`` of both paper scenes (``difstar.paper_camera``,
   ``difstar.choose_grid`` at a 1250² crop), jitted as ``difstar predict`` does;
+- ``jwst``: ``difstar fit-image fit/jwst-nircam/manifest.json`` (the JWST star; its data
+  from ``../shared/data/measured_psf``), a whole fit, compiling included;
+- ``rawfit``: ``difstar fit fit/synthetic-paper-camera/manifest.json`` (the RAW campaign),
+  a whole fit, compiling included;
 - ``sweep``: ``difstar design``'s sweep of 64 designs (9 blades, f/8, curvature 0 … 0.9,
   the study's 96² / 128² PSFs) as one ``map_batch`` program over every device;
 - ``scale``: ``map_batch`` of defocused PSFs (256², one wavelength per item) for batch
@@ -24,8 +28,9 @@ JAX's default — the GPU where there is one — and ``cpu`` for the ``--cpu-too
 Compile = ``jit(...).lower(...).compile()``; run = best of ``--repeats`` calls of the
 compiled program after one warm-up call (``block_until_ready``). Peak memory: the
 device's ``memory_stats()["peak_bytes_in_use"]`` where it reports one (GPUs), else the
-process's peak resident memory (``ru_maxrss``, marked "host"). ``--quick``: 128² PSFs, 64²
-scenes, 4 designs of the quick setup, batches 1–4 on 1–2 devices, one repeat.
+process's peak resident memory (``ru_maxrss``, marked "host"). ``--quick``: the fits 1
+step per stage, 128² PSFs, 64² scenes, 4 designs of the quick setup, batches 1–4 on 1–2
+devices, one repeat.
 Prints Markdown tables (progress on stderr).
 """
 
@@ -41,6 +46,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+CASES = ("psf", "simulate", "jwst", "rawfit", "sweep", "scale")
 
 CHILD = r'''
 import json, math, resource, sys, time
@@ -134,6 +140,17 @@ elif task == "scale":
     c, out["compile_s"] = compile_(run, x)
     out["run_s"] = timed(c, (x,), reps)
     out["items"], out["use_devices"] = items, nd
+elif task == "fit":
+    # a whole fit as a user runs it (compiling included: its stages compile as they go)
+    import tempfile
+    from difstar.cli import main
+    with tempfile.TemporaryDirectory() as tmp:
+        argv = [a.replace("{tmp}", tmp) for a in spec["argv"]]
+        t0 = time.perf_counter()
+        rc = main(argv)
+        out["run_s"] = time.perf_counter() - t0
+    if rc != 0:
+        raise SystemExit(f"difstar {' '.join(argv)} ended with status {rc}")
 out["peak_bytes"], out["peak_of"] = peak()
 print("RESULT " + json.dumps(out), flush=True)
 '''
@@ -181,6 +198,8 @@ def _cell(r: dict | None) -> tuple[str, str, str]:
         return ("", "", "")
     if "error" in r:
         return (f"failed: {r['error']}", "", "")
+    if "compile_s" not in r:  # a whole fit: its compiling is part of its run
+        return ("in the run", f"{r['run_s']:.1f} s", _mem(r))
     return (f"{r['compile_s']:.2f} s", f"{1e3 * r['run_s']:.1f} ms", _mem(r))
 
 
@@ -204,8 +223,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cpu-too", action="store_true",
                     help="also run every case on the CPU (JAX_PLATFORMS=cpu)")
     ap.add_argument("--repeats", type=int, default=None, help="timed runs (default 3; 1 quick)")
-    ap.add_argument("--only", nargs="+", choices=["psf", "simulate", "sweep", "scale"],
-                    default=["psf", "simulate", "sweep", "scale"])
+    ap.add_argument("--only", nargs="+", choices=list(CASES), default=list(CASES))
     ap.add_argument("--json", help="also write every figure to this JSON file")
     a = ap.parse_args(argv)
     reps = a.repeats or (1 if a.quick else 3)
@@ -224,6 +242,18 @@ def main(argv=None) -> int:
         cases += [("simulate", f"simulate, paper {c} scene, {sizes['scene']}² crop",
                    {"task": "simulate", "config": c, "crop": sizes["scene"]})
                   for c in ("focused", "defocused")]
+    if "jwst" in a.only:  # the star's data: ../shared/data/measured_psf beside the checkout
+        steps = ["--max-steps", "1"] if q else []
+        cases.append(("jwst", f"JWST star fit (fit-image){', 1 step per stage' if q else ''}",
+                      {"task": "fit", "argv": ["fit-image", "fit/jwst-nircam/manifest.json",
+                                               "--out", "{tmp}/jwst", "--quiet", *steps]}))
+    if "rawfit" in a.only:
+        steps = ["--max-steps", "1"] if q else []
+        cases.append(("rawfit", f"RAW campaign fit (synthetic paper camera)"
+                      f"{', 1 step per stage' if q else ''}",
+                      {"task": "fit", "argv": ["--x64", "fit",
+                                               "fit/synthetic-paper-camera/manifest.json",
+                                               "--out", "{tmp}/raw", *steps]}))
     if "sweep" in a.only:
         cases.append(("sweep", f"design sweep, {sizes['designs']} designs"
                       f"{' (quick setup)' if q else ''}, all devices",
