@@ -15,6 +15,9 @@ import pytest
 from test_fitting import LAM, TRUE, P, _numpy_star
 
 from difstar._fit_image_cli import main
+from difstar.fitting import ImageModel, Light
+from difstar.fitting._model import parameter_unit
+from difstar.fitting._parts import BUILDERS
 
 ROOT = Path(__file__).resolve().parents[1]
 RADIUS = 1.3  # disc source, data pixels
@@ -90,6 +93,8 @@ def test_fit_image_cli_bracket_end_to_end(bracket, capsys):
     assert abs(v["source_radius"] - RADIUS) < 0.05
     assert "background@1" in res["free"] and "flux@1" not in res["free"]
     assert res["chi2_dof"] < 2.0
+    assert res["units"].keys() == v.keys() and all(res["units"].values())  # every one
+    assert res["units"]["background@1"] == "data units"
     assert np.load(out / "model.npy").shape == (2, 19, 19)
     assert (out / "fit.png").stat().st_size > 10_000
     spikes = res["spike_angles_deg"]  # the model's, one per data spike (null: no peak)
@@ -226,3 +231,23 @@ def test_fits_outputs_subtract_from_the_input_fits(tmp_path):
         np.unravel_index(np.argmax(data), data.shape)
     rms = np.sqrt(np.mean(resid[inside] ** 2)) / np.max(data[inside])
     assert rms == pytest.approx(res["residual_rms_over_peak"], rel=1e-9)
+
+
+@pytest.mark.parametrize("kind", sorted(BUILDERS))
+def test_every_parameter_has_a_unit(kind):
+    """result.json's "units" and the FITS comments: every parameter any model of a
+    builder can have (Zernike terms, a disc source, the response curve, per-capture
+    copies) has one, and the documented ones are right (ImageModel's and the builders'
+    docstrings: z<j> nm RMS, angles in degrees, lengths in metres, fractions 1)."""
+    model = ImageModel(BUILDERS[kind](), {}, light=Light.monochromatic(LAM),
+                       zernike=(4, 11), source="disc", response=True)
+    names = [*model.params, "x0@1", "z4@2"]
+    assert all(parameter_unit(k) for k in names), [k for k in names if not parameter_unit(k)]
+    documented = {"z4": "nm RMS", "z11@2": "nm RMS", "rotation": "deg", "halo": "1",
+                  "strut_spread": "deg", "strut_tilt": "deg", "flat_to_flat": "m",
+                  "gap": "m", "incoherent": "1", "halo2": "1", "iris_radius": "m",
+                  "radius": "m", "pixel_scale": "arcsec per data px"}
+    for k, unit in documented.items():
+        assert parameter_unit(k).split(",")[0] == unit, k
+    with pytest.raises(KeyError, match="no unit for 'bogus'"):
+        parameter_unit("bogus")

@@ -251,6 +251,7 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     """The main fit of ``loaded`` = :func:`load_manifest`'s (model, data, options),
     loaded at ``t0`` (the wall time counts from there)."""
     from .fitting._analysis import model_spike_angles, spike_angles
+    from .fitting._model import parameter_unit
     from .fitting._procedure import fit
     from .fitting._solve import values_of_capture
 
@@ -284,7 +285,7 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
         "residual_rms_over_peak": res.residual_rms_peak,
         "wall_time_s": wall,
         "values": res.values,
-        "units": {k: _UNITS.get(k.split("@")[0], "") for k in res.values},
+        "units": {k: parameter_unit(k) for k in res.values},
         "errors": res.errors,
         "free": res.free,
         "warnings": res.warnings,
@@ -312,20 +313,12 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     return summary
 
 
-#: units of the fitted values, for the FITS keywords' comments
-_UNITS = {"rotation": "deg, counter-clockwise", "x0": "data px right of centre",
-          "y0": "data px down from centre", "pixel_scale": "arcsec per data px",
-          "flux": "data units x exposure", "background": "data units",
-          "jitter": "data px, Gaussian sigma", "halo_width": "data px",
-          "halo2_width": "data px", "source_radius": "data px", "obstruction": "m",
-          "strut_width": "m", "radius": "m"}
-
-
 def _write_fits(out: Path, res, data, opts) -> None:
     """model.fits and residual.fits (model_I / residual_I.fits for capture I of several):
     in the input file's layout (a FITS input's header and WCS, its row order, its full
     frame with NaN outside the fitted window), so that the input minus model.fits is
     residual.fits; the fitted values as keywords with their units."""
+    from .fitting._model import parameter_unit
     from .fitting._solve import values_of_capture
     from .io import read_image
     from .io._images import write_fits_like
@@ -337,7 +330,7 @@ def _write_fits(out: Path, res, data, opts) -> None:
     for i, (d, m, cap) in enumerate(zip(datas, models, caps)):
         v = values_of_capture(res.values, i)
         kw = [("DIFSTAR", "fit-image", "written by difstar fit-image")]
-        kw += [(f"DIFSTAR {k.upper()}", float(x), _UNITS.get(k, "")) for k, x in v.items()]
+        kw += [(f"DIFSTAR {k.upper()}", float(x), parameter_unit(k)) for k, x in v.items()]
         src = d.path
         im = read_image(src) if src is not None else None
         like = dict(source=src, roi=cap.get("roi"), flipped=bool(im and im.flipped),

@@ -45,6 +45,31 @@ SOURCE_DISC = {"source_radius": 1.0}
 #: ``white`` · Z(I / ``white``; ``toe``, ``knee``) + background, I the linear image.
 RESPONSE = {"white": 1.0, "toe": 0.0, "knee": 60.0}
 
+#: The unit of every parameter a model can have (result.json's "units", the FITS
+#: keywords' comments); ``z<j>`` are nm RMS (:func:`parameter_unit`). "1": a pure number.
+UNITS = {"rotation": "deg, counter-clockwise", "x0": "data px right of centre",
+         "y0": "data px down from centre", "pixel_scale": "arcsec per data px",
+         "flux": "data units x exposure", "background": "data units",
+         "jitter": "data px, Gaussian sigma", "halo": "1, fraction of the light",
+         "halo_width": "data px, Gaussian sigma", "halo2": "1, fraction of the light",
+         "halo2_width": "data px, Gaussian sigma", "shear": "1", "aspect": "1",
+         "source_radius": "data px", "white": "data units", "toe": "1, of I / white",
+         "knee": "1", "flat_to_flat": "m", "gap": "m", "obstruction": "m, radius",
+         "strut_width": "m", "strut_spread": "deg", "strut_tilt": "deg, from 90",
+         "incoherent": "1, fraction of the light", "radius": "m",
+         "iris_radius": "m, circumradius", "curvature": "1, R x curvature"}
+
+
+def parameter_unit(name: str) -> str:
+    """The unit of parameter ``name`` (a per-capture copy "x0@1" has x0's): from
+    :data:`UNITS`, "nm RMS" for a Zernike term ``z<j>``."""
+    base = name.split("@")[0]
+    if re.fullmatch(r"z\d+", base):
+        return "nm RMS"
+    if base not in UNITS:
+        raise KeyError(f"parameter_unit: no unit for {name!r}; add it to fitting._model.UNITS.")
+    return UNITS[base]
+
 def _source_kind(source):
     """"point", "disc" or a user image (a 2-D array of non-negative finite values with a
     positive sum; its centre pixel (shape // 2) is the star's position)."""
