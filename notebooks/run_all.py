@@ -61,7 +61,7 @@ def run_one(path: Path, small: bool, timeout: int) -> float:
     import nbclient
     import nbformat
 
-    from difstar.io._output import write_file_atomic
+    from difstar.io import write_file_atomic
 
     nb = nbformat.read(path, as_version=4)
     note_sizes(nb, small)
