@@ -262,8 +262,9 @@ def main(argv=None) -> int:
     for name, label, spec in cases:
         spec = dict(spec, repeats=reps)
         _log(f"{label} ...")
-        main_r = run_case(spec, cpu=False)
-        cpu_r = run_case(spec, cpu=True) if (a.cpu_too and on_gpu) else None
+        limit = 3600 if spec["task"] == "fit" else 900  # a whole fit: minutes on a CPU
+        main_r = run_case(spec, cpu=False, timeout=limit)
+        cpu_r = run_case(spec, cpu=True, timeout=limit) if (a.cpu_too and on_gpu) else None
         results.append({"case": label, "default": main_r, "cpu": cpu_r})
     scale = []
     if "scale" in a.only:
