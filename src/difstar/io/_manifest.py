@@ -62,7 +62,7 @@ def load_manifest(path: str | Path) -> Manifest:
 def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifest:
     """Validate ``doc`` and resolve it (``path`` names it in errors and anchors the
     capture files)."""
-    from .._fit import param_shape
+    from .._fit import param_shape, zernike_index
 
     path = Path(path)
     src = str(path)
@@ -142,7 +142,7 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
         params[name] = {"shape": shape, "free": free, "start": start, "lo": lo, "hi": hi,
                         "perturb_scale": scale}
 
-    zern = sorted(k for k in params if k[0] == "z" and k[1:].isdigit())
+    zern = sorted(k for k in params if zernike_index(k) is not None)
     if zern and "zernike_radius" not in cam:
         raise SceneError(
             f"{src}: field camera/zernike_radius: the Zernike parameters {zern} need the "
@@ -155,14 +155,9 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
         )
     syn = doc.get("synthetic")
     if syn is not None:
-        truth = {}
-        for name, v in syn["truth"].items():
-            if name not in params:
-                raise SceneError(
-                    f"{src}: field synthetic/truth/{name}: not a parameter of this manifest"
-                )
-            truth[name] = _shaped(v, params[name]["shape"], f"{src}: field synthetic/truth/{name}")
-            _check_sign(name.partition("/")[0], truth[name], f"{src}: field synthetic/truth/{name}")
+        truth = _truth_values(syn["truth"], params, f"{src}: field synthetic/truth")
+        for name, v in truth.items():
+            _check_sign(name.partition("/")[0], v, f"{src}: field synthetic/truth/{name}")
         missing = [k for k in params if k not in truth]
         if missing:
             raise SceneError(f"{src}: field synthetic/truth: missing values for {missing}")
@@ -187,12 +182,7 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
         if syn is not None:
             raise SceneError(f"{src}: field truth: a synthetic manifest's truth is "
                              "synthetic/truth; give one of the two")
-        truth = {}
-        for name, v in doc["truth"]["values"].items():
-            where = f"{src}: field truth/values/{name}"
-            if name not in params:
-                raise SceneError(f"{where}: not a parameter of this manifest")
-            truth[name] = _shaped(v, params[name]["shape"], where)
+        truth = _truth_values(doc["truth"]["values"], params, f"{src}: field truth/values")
     return Manifest(
         path=path, doc=doc, camera=cam, noise=noise, configurations=configs,
         captures=tuple(caps), parameters=params, grid=dict(doc.get("grid", {})),
@@ -200,6 +190,17 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
                 "reweight": 1, **doc.get("solver", {})},
         synthetic=syn, truth=truth,
     )
+
+
+def _truth_values(values: dict, params: dict, where: str) -> dict:
+    """True values by parameter name, each shaped like its parameter (``where`` names
+    the block in errors)."""
+    out = {}
+    for name, v in values.items():
+        if name not in params:
+            raise SceneError(f"{where}/{name}: not a parameter of this manifest")
+        out[name] = _shaped(v, params[name]["shape"], f"{where}/{name}")
+    return out
 
 
 #: parameters that must be > 0 (or >= 0) to mean anything
