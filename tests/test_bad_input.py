@@ -440,6 +440,30 @@ def test_clean_up_leaves_a_live_run_alone(work):
     assert _output.remove_stale(work) == [tmp] and not tmp.exists()
 
 
+def test_clean_up_skips_a_folder_committed_while_it_looked(work, monkeypatch):
+    """A live run's temporary folder renamed into place between the clean-up reading
+    its marker and taking its lock (was: FileNotFoundError in a run beside it, seen
+    with eight concurrent writers on a loaded machine): left alone, no error."""
+    import shutil as sh
+
+    from difstar.io import _output
+
+    tmp = work / ".out.difstar-tmp-00112233445566bb"
+    tmp.mkdir()
+    _output._write_marker(tmp, [], "test", "00112233445566bb")
+    real_read = _output.read_marker
+
+    def read_then_commit(folder):
+        doc = real_read(folder)
+        if Path(folder) == tmp:
+            sh.move(tmp, work / "out")  # the run commits at this moment
+        return doc
+
+    monkeypatch.setattr(_output, "read_marker", read_then_commit)
+    assert _output.remove_stale(work) == []
+    assert (work / "out" / _output.MARKER).exists()
+
+
 def test_run_killed_between_the_renames_puts_the_old_result_back(work):
     """--overwrite moves the old result into the new temporary folder; a run killed
     there leaves it, and the next run beside it puts it back in place."""

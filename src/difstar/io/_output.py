@@ -159,7 +159,10 @@ def _abandoned(entry: Path) -> bool:
         return False
     if marker.get("host") != socket.gethostname():
         return False
-    lock = _lock(entry)
+    try:
+        lock = _lock(entry)
+    except OSError:  # gone meanwhile (a live run committed or removed it)
+        return False
     if lock is None:  # held by a live run, or no locks here: not ours to judge
         return False
     lock.close()
