@@ -332,7 +332,7 @@ def test_overwrite_replaces_only_what_difstar_made(work, capsys):
 def test_failure_while_writing_leaves_nothing(work, capsys, monkeypatch):
     """An internal failure half-way through writing: exit status 1, the folders it made
     for --out removed, no temporary folder, the input unchanged."""
-    import difstar.io._output as output
+    import difstar.io._image_files as output
 
     scene = write_text(work / "s.json", json.dumps(small_doc()))
 
@@ -509,6 +509,7 @@ def test_full_disk_is_refused_up_front_and_named_while_writing(work, capsys, mon
     import errno as err_no
     import shutil as sh
 
+    import difstar.io._image_files as image_files
     import difstar.io._output as output
 
     scene = write_text(work / "s.json", json.dumps(small_doc()))
@@ -522,7 +523,7 @@ def test_full_disk_is_refused_up_front_and_named_while_writing(work, capsys, mon
     def full(*args, **kwargs):
         raise OSError(err_no.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(output, "write_raw_dng", full)
+    monkeypatch.setattr(image_files, "write_raw_dng", full)
     err = refused(["predict", scene, "--out", work / "out"], capsys, work,
                   "No space left on device", str(work / "out"), "nothing was written")
     assert len([ln for ln in err.splitlines() if "error" in ln]) == 1  # one line, no trace

@@ -39,16 +39,16 @@ def _small_doc():
 
 
 def test_predict_writes_everything(tmp_path, monkeypatch):
-    from difstar.io import _output
+    from difstar.io import _image_files
 
     got = {}  # the float sRGB image predict renders, as handed to its writers
-    keep = _output.write_tiff_srgb16
+    keep = _image_files.write_tiff_srgb16
 
     def srgb16(path, srgb):
         got["srgb"] = np.array(srgb, dtype=float)
         return keep(path, srgb)
 
-    monkeypatch.setattr(_output, "write_tiff_srgb16", srgb16)
+    monkeypatch.setattr(_image_files, "write_tiff_srgb16", srgb16)
     scene = tmp_path / "scene.json"
     scene.write_text(json.dumps(_small_doc()))
     out = tmp_path / "out"

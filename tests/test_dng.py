@@ -244,7 +244,7 @@ def test_predicted_dng_develops_in_libraw_as_difstar_renders(tmp_path, pattern):
 
     from difstar._cfa import mosaic
     from difstar._colour import render_srgb
-    from difstar.io._output import write_raw_dng
+    from difstar.io._image_files import write_raw_dng
 
     zeta = _smooth_zeta()
     cfa = np.asarray(mosaic(jnp.asarray(zeta), pattern))

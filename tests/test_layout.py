@@ -35,7 +35,6 @@ OVER_LIMIT = {
     "difstar._design_cli": 873,
     "difstar._fit_cli": 883,
     "difstar._validate": 663,
-    "difstar.io._output": 658,
 }
 
 

@@ -18,7 +18,7 @@ import pytest
 
 import difstar
 from difstar import cli
-from difstar.io import _output
+from difstar.io import _image_files
 from difstar.io._scene import SceneError, scene_from_dict, scene_to_dict
 
 #: K = 3 wavelengths per channel, each channel its own; the blue channel's last weight 0
@@ -76,7 +76,7 @@ def _capture(monkeypatch) -> dict:
     """The predicted float arrays that ``predict`` writes to raw.dng, srgb.png and
     psf_log.png (the files themselves are quantised)."""
     got = {}
-    raw, png, psf_log = _output.write_raw_dng, _output.write_png_srgb, cli.write_psf_png
+    raw, png, psf_log = _image_files.write_raw_dng, _image_files.write_png_srgb, cli.write_psf_png
 
     def tiff(path, cfa, **kw):
         got["cfa"] = np.array(cfa, dtype=float)
@@ -91,8 +91,8 @@ def _capture(monkeypatch) -> dict:
         got["psf"] = np.array(psf, dtype=float)
         return psf_log(path, psf)
 
-    monkeypatch.setattr(_output, "write_raw_dng", tiff)
-    monkeypatch.setattr(_output, "write_png_srgb", srgb)
+    monkeypatch.setattr(_image_files, "write_raw_dng", tiff)
+    monkeypatch.setattr(_image_files, "write_png_srgb", srgb)
     monkeypatch.setattr(cli, "write_psf_png", psf_png)
     return got
 
@@ -129,14 +129,14 @@ CHILD = textwrap.dedent('''
     import jax
     from test_scene_file import spectral_doc
     from difstar import cli
-    from difstar.io import _output
+    from difstar.io import _image_files
 
     got = {}
-    raw = _output.write_raw_dng
+    raw = _image_files.write_raw_dng
     def tiff(path, cfa, **kw):
         got["cfa"] = np.array(cfa, dtype=float)
         return raw(path, cfa, **kw)
-    _output.write_raw_dng = tiff
+    _image_files.write_raw_dng = tiff
     keep = cli.write_psf_png
     def psf_png(path, psf):
         got["psf"] = np.array(psf, dtype=float)

@@ -450,7 +450,8 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
     from difstar._demosaic import demosaic
     from difstar._fit import noise_sigma
     from difstar._metrics import profile_circle, profile_line, table1
-    from difstar.io._output import write_json, write_png_srgb
+    from difstar.io._image_files import write_png_srgb
+    from difstar.io._output import write_json
 
     written = ["fit_result.json"]
     pred = fitter.predict(u, full=True)

@@ -54,14 +54,8 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
     import difstar
     from difstar._sampling import choose_grid
     from difstar._validate import check_crop
-    from difstar.io._output import (
-        check_output_free,
-        output_dir,
-        write_json,
-        write_png_srgb,
-        write_raw_dng,
-        write_tiff_srgb16,
-    )
+    from difstar.io._image_files import write_png_srgb, write_raw_dng, write_tiff_srgb16
+    from difstar.io._output import check_output_free, output_dir, write_json
     from difstar.io._scene import scene_from_dict
 
     check_output_free(out, overwrite=overwrite, inputs=inputs)
