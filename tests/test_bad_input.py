@@ -488,7 +488,7 @@ def test_synth_overwrite_never_replaces_a_camera_raw(work, capsys):
     replaced). Only DNGs difstar wrote (TIFF Software tag) may be."""
     import shutil as sh
 
-    from difstar._fit_cli import synth_replaceable
+    from difstar._fit_run import synth_replaceable
     from difstar.io._manifest import load_manifest
 
     man = base_manifest(work)

@@ -159,7 +159,7 @@ def test_synth_dng_roundtrip(tmp_path):
     prediction within the Poisson–Gaussian noise, and saturation is flagged."""
     import json
 
-    from difstar._fit_cli import load_captures, observed_data, prepare, synthesize
+    from difstar._fit_run import load_captures, observed_data, prepare, synthesize
     from difstar.io._manifest import load_manifest
 
     doc = {
@@ -214,7 +214,7 @@ def test_campaign_captures_come_from_the_current_model(tmp_path):
     """The committed synthetic campaign must be what `difstar synth` makes today: captures
     made by an earlier forward model once biased the recovery study's φ0 by 1 %. The
     synthesis is seeded, so the DNGs agree pixel for pixel up to rounding at ±1 DN."""
-    from difstar._fit_cli import synthesize
+    from difstar._fit_run import synthesize
     from difstar.io._manifest import load_manifest
     from difstar.io._raw import read_raw
 
@@ -235,7 +235,7 @@ def test_campaign_captures_come_from_the_current_model(tmp_path):
 def test_response_curve_restarts_leave_a_shallow_basin():
     """A knee stuck at half its value (the local minimum the issue found on independent
     captures) is left by the restarts: they end at a lower loss, near the true knee."""
-    from difstar._fit_cli import restart_response_curves
+    from difstar._fit_run import restart_response_curves
 
     free = dict(FREE, knee=(5.0, 200.0))
     model = _model(free)

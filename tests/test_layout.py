@@ -33,7 +33,6 @@ OVER_LIMIT = {
     "difstar._batch": 1286,
     "difstar._design": 816,
     "difstar._design_cli": 873,
-    "difstar._fit_cli": 883,
     "difstar._validate": 663,
 }
 

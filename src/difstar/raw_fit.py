@@ -4,7 +4,9 @@
 The pure layer (a :class:`FitModel` of named parameters, a :class:`Fitter` running the
 Levenberg–Marquardt stepper on its unconstrained vector) and the manifest boundary
 (:func:`load_manifest`, :func:`prepare`, :func:`observed_data`) that turns a manifest
-and its captures into that model and its data.
+and its captures into that model and its data; :func:`fit_manifest` (the whole staged
+fit), :func:`recovery_study` (fits from rough starts against a known truth) and
+:func:`synthesize` (captures from a manifest's truth), which the commands call.
 """
 
 from ._fit import CameraConstants as CameraConstants
@@ -19,12 +21,17 @@ from ._fit import noise_sigma as noise_sigma
 from ._fit import param_shape as param_shape
 from ._fit import to_unconstrained as to_unconstrained
 from ._fit import weights as weights
-from ._fit_cli import observed_data as observed_data
-from ._fit_cli import prepare as prepare
+from ._fit_recovery import recovery_study as recovery_study
+from ._fit_recovery import study_table as study_table
+from ._fit_run import fit_manifest as fit_manifest
+from ._fit_run import observed_data as observed_data
+from ._fit_run import prepare as prepare
+from ._fit_run import synthesize as synthesize
 from .io._manifest import load_manifest as load_manifest
 
 __all__ = [
     "CameraConstants", "CaptureSpec", "ConfigSpec", "FitModel", "Fitter", "ParamSpec",
-    "from_unconstrained", "load_manifest", "make_args", "noise_sigma", "observed_data",
-    "param_shape", "prepare", "to_unconstrained", "weights",
+    "fit_manifest", "from_unconstrained", "load_manifest", "make_args", "noise_sigma",
+    "observed_data", "param_shape", "prepare", "recovery_study", "study_table", "synthesize",
+    "to_unconstrained", "weights",
 ]

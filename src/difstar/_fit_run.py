@@ -1,0 +1,494 @@
+"""The RAW camera fit from a manifest (``difstar fit``, ``difstar synth``): captures →
+:class:`difstar.raw_fit.FitModel` (:func:`prepare`), a start from the data's photometry,
+the staged Levenberg–Marquardt solve with knee restarts (:func:`fit_manifest`) and the
+synthetic captures a manifest's truth makes (:func:`synthesize`).
+
+Outside jit: files are read here and progress goes to stderr; :mod:`difstar._fit` is the
+pure layer. The command line (:mod:`difstar._fit_cli`) only parses, calls and writes.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from difstar._fit_truth import compare_truth
+
+SATURATION_GUARD = 4.0  # also mask pixels expected within this many σ of the white level
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# ------------------------------------------------------------------------ model setup
+
+def camera_constants(man):
+    from difstar._fit import CameraConstants
+
+    c = man.camera
+    return CameraConstants(
+        focal_length=float(c["focal_length"]),
+        principal_separation=float(c["principal_separation"]),
+        pupil_magnification=float(c["pupil_magnification"]),
+        pixel_pitch=float(c["pixel_pitch"]), pattern=c.get("pattern", "RGGB"),
+        wavelengths=tuple(float(w) for w in c["wavelengths"]), n_blades=int(c["blades"]),
+        white_balance=tuple(float(w) for w in c["white_balance"]),
+        colour_matrix=None if "colour_matrix" not in c else tuple(map(tuple, c["colour_matrix"])),
+        zernike_radius=None if "zernike_radius" not in c else float(c["zernike_radius"]),
+    )
+
+
+def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
+                pattern: str, padding: float | None = None, values: dict | None = None):
+    """A FitModel for the manifest: grids from ``choose_grid`` at the parameters' most
+    demanding bounds (largest |Δz| and source), ``crops`` per configuration, the
+    captures' rough source offsets from their region centres (px) and exposure times."""
+    import dataclasses
+
+    from difstar import Grid
+    from difstar._fit import CaptureSpec, ConfigSpec, FitModel, ParamSpec, camera_scene
+    from difstar._sampling import choose_grid
+
+    cc = dataclasses.replace(camera_constants(man), pattern=pattern)
+    params = []
+    for name, p in man.parameters.items():
+        start = p["start"] if values is None else values[name]
+        params.append(ParamSpec(name, p["shape"], p["free"], start, p["lo"], p["hi"]))
+    caps = tuple(
+        CaptureSpec(c.name, c.configuration, float(exposure_times[c.name]),
+                    tuple(float(v) for v in base_offsets[c.name]))
+        for c in man.captures
+    )
+    pad = man.grid.get("padding", 1.0) if padding is None else padding
+    configs = []
+    for name, cfg in man.configurations.items():
+        crop = tuple(crops[name])
+        dummy = ConfigSpec(name, float(cfg["focus_distance"]), float(cfg["object_distance"]),
+                           Grid(n=max(crop), crop=crop, raw_only=True))
+        probe = FitModel(cc, (dummy,), tuple(c for c in caps if c.config == name),
+                         tuple(params))
+        # the grid must hold the values the solver will try: the starts with 30 % to spare
+        # (the bounds would often double the grid, and with it time and memory)
+        x = {p.name: np.asarray(p.start) for p in probe.params}
+        for key in (f"defocus/{name}", "source_radius", "circumradius"):
+            p = probe.param.get(key)
+            if p is not None and p.free:
+                x[key] = 1.3 * np.abs(p.start) + 0.3 * man.parameters[key]["perturb_scale"]
+        camera, scene, _, _ = camera_scene(probe, x, name)
+        g = choose_grid(camera, scene, crop=crop, padding=pad, raw_only=True,
+                        oversample=man.grid.get("oversample"))
+        dz = probe.param.get(f"defocus/{name}")
+        use_dz = g.use_defocus or (dz is not None and dz.free)
+        # windows (FFT path: the pupil's ATF and the sources' image computed only where
+        # they are) sized like the grid, plus the source offsets' bounds
+        off = probe.param.get(f"source_offset/{name}")
+        reach = 0 if off is None or not off.free else int(np.ceil(np.max(np.abs(
+            np.concatenate([off.lo, off.hi])))))
+        src = g.source_window + 2 * reach if g.source_window else 0
+        if g.method == "engine":  # difstar.psf's engine on exactly the crop's offsets
+            grid = Grid(n=g.n, crop=crop, use_defocus=use_dz, raw_only=True, method="engine",
+                        source_window=src, psf_plan=g.psf_plan)
+        else:
+            grid = Grid(n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz,
+                        raw_only=True, method=g.method, pupil_window=g.pupil_window,
+                        source_window=src if src < g.n else 0)
+        configs.append(dataclasses.replace(dummy, grid=grid))
+    return FitModel(cc, tuple(configs), caps, tuple(params))
+
+
+def load_captures(man):
+    """Read each capture's region of interest: ζ, the saturated mask, levels."""
+    from difstar.io._manifest import roi_origin
+    from difstar.io._raw import read_raw
+    from difstar.io._scene import SceneError
+
+    out = {}
+    pattern = None
+    for c in man.captures:
+        if c.path.is_dir():
+            raise SceneError(f"{man.path}: field captures/{c.name}/file: {c.path} is a folder, "
+                             "not a RAW file.")
+        if not c.path.is_file():
+            raise SceneError(f"{man.path}: field captures/{c.name}/file: {c.path} does not "
+                             "exist (paths are relative to the manifest's folder).")
+        rc = read_raw(c.path)
+        fh, fw = rc.shape
+        if man.synthetic is not None and tuple(man.synthetic["frame_size"]) != (fh, fw):
+            raise SceneError(
+                f"{man.path}: field captures/{c.name}/file: {c.path} is {fh} × {fw} pixels, "
+                f"not the synthetic.frame_size {man.synthetic['frame_size'][0]} × "
+                f"{man.synthetic['frame_size'][1]}; re-run `difstar synth` or fix frame_size."
+            )
+        r, col = c.source_position
+        if not (0 <= r < fh and 0 <= col < fw):
+            raise SceneError(
+                f"{man.path}: field captures/{c.name}/source_position: {[r, col]} is outside "
+                f"the {fh} × {fw} frame of {c.path.name}; give the source's (row, col) in "
+                "that frame."
+            )
+        if pattern is None:
+            pattern = rc.pattern
+        elif rc.pattern != pattern:
+            raise SceneError(f"{c.path}: Bayer layout {rc.pattern} differs from the other "
+                             f"captures' {pattern}")
+        t = c.exposure_time if c.exposure_time is not None else rc.exposure_time
+        if t is None:
+            raise SceneError(f"{man.path}: field captures/{c.name}/exposure_time: {c.path} has "
+                             "no EXIF ExposureTime; give exposure_time in the manifest")
+        if not (math.isfinite(float(t)) and float(t) > 0):
+            raise SceneError(f"{man.path}: field captures/{c.name}/exposure_time: {t} (from "
+                             f"{c.path.name}) is not a finite time > 0; give exposure_time "
+                             "in the manifest")
+        try:
+            r0, c0 = roi_origin(c.source_position, c.roi_size, rc.shape)
+        except ValueError as exc:
+            raise SceneError(f"{man.path}: field captures/{c.name}/roi_size: {exc}") from exc
+        h, w = c.roi_size
+        sl = (slice(r0, r0 + h), slice(c0, c0 + w))
+        full = float(rc.white_level - np.mean(rc.black_level))
+        out[c.name] = {
+            "zeta": rc.cfa[sl], "saturated": rc.saturated[sl], "origin": (r0, c0),
+            "base_offset": (c.source_position[0] - (r0 + h // 2),
+                            c.source_position[1] - (c0 + w // 2)),
+            "exposure_time": float(t), "full_scale_dn": full, "crop": (h, w),
+        }
+    return out, pattern
+
+
+def observed_data(model, caps: dict, noise: dict, sigma_from: dict | None = None):
+    """{config: (ζ_obs, weight)} with σ from ``sigma_from`` ({config: ζ (K, h, w)}, e.g.
+    a prediction) or from the observed ζ."""
+    import jax.numpy as jnp
+
+    from difstar._fit import noise_sigma, weights
+
+    data = {}
+    for cfg in model.configs:
+        names = [c.name for c in model.captures_of(cfg.name)]
+        z = np.stack([caps[n]["zeta"] for n in names])
+        sat = np.stack([caps[n]["saturated"] for n in names])
+        fs = np.asarray([caps[n]["full_scale_dn"] for n in names])[:, None, None]
+        ref = z if sigma_from is None else np.asarray(sigma_from[cfg.name])
+        kw = dict(gain_e_per_dn=noise["gain_e_per_dn"], read_noise_dn=noise["read_noise_dn"],
+                  full_scale_dn=jnp.asarray(fs))
+        sig = noise_sigma(jnp.asarray(ref), **kw)
+        # Censoring: a pixel whose expected value lies within a few σ of the white level
+        # is clipped by its noise more often one way than the other, so its unclipped
+        # values are biased low (a 1 % bias in φ0 here). Mask them as well as the clipped.
+        near = np.asarray(ref) >= 1.0 - SATURATION_GUARD * np.asarray(noise_sigma(1.0, **kw))
+        data[cfg.name] = (jnp.asarray(z), weights(sig, jnp.asarray(sat | near)))
+    return data
+
+
+def prepare(man):
+    """The manifest's captures read (:func:`load_captures`) and its :class:`FitModel`
+    built for them (:func:`build_model`): returns (model, captures)."""
+    caps, pattern = load_captures(man)
+    crops = {}
+    for c in man.captures:
+        crops[c.configuration] = caps[c.name]["crop"]
+    model = build_model(
+        man, crops=crops, base_offsets={k: v["base_offset"] for k, v in caps.items()},
+        exposure_times={k: v["exposure_time"] for k, v in caps.items()}, pattern=pattern,
+    )
+    return model, caps
+
+
+# ------------------------------------------------------------------------------ fit
+
+#: Seconds from the command's start to the end of its first solver step (once per process).
+FIRST_STEP: dict = {}
+
+
+def seconds_since_process_start() -> float | None:
+    """Seconds since this process started (Linux /proc; None elsewhere)."""
+    import os
+
+    try:
+        with open("/proc/self/stat") as f:
+            start = float(f.read().rsplit(")", 1)[1].split()[19])  # field 22, in ticks
+        with open("/proc/uptime") as f:
+            up = float(f.read().split()[0])
+        return up - start / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def photometric_start(model, caps, u0):
+    """``u0`` with a free φ0 set, per channel, so that the model's linear image at ``u0``
+    carries the light of the unsaturated pixels in the linear range (ζ < 0.7) of the
+    data: φ0 = Σ C·t / Σ ζ over those pixels. The exposure scale's start then no longer
+    depends on the camera's units (a wrong start by orders of magnitude saturates or
+    blanks the whole prediction, where the solver cannot move it); left alone when φ0
+    is fixed."""
+    from difstar._cfa import bayer_masks_np
+    from difstar._fit import from_unconstrained, predict, to_unconstrained
+
+    spec = model.param.get("phi0")
+    if spec is None or not spec.free:
+        return u0
+    x = from_unconstrained(model, u0)
+    pred = predict(model, x, full=True)
+    num = np.zeros(3)
+    den = np.zeros(3)
+    for cfg in model.configs:
+        caps_c = model.captures_of(cfg.name)
+        img = np.asarray(pred[cfg.name].image)  # (K, 3, h, w)
+        masks = bayer_masks_np(img.shape[-2:], model.camera.pattern).astype(bool)  # (3, h, w)
+        for k, c in enumerate(caps_c):
+            z = np.asarray(caps[c.name]["zeta"])
+            ok = ~np.asarray(caps[c.name]["saturated"]) & (z < 0.7)
+            t = c.exposure_time
+            for ch in range(3):
+                m = masks[ch] & ok
+                num[ch] += np.sum(img[k, ch][m]) * t
+                den[ch] += np.sum(z[m])
+    phi0 = np.where((num > 0) & (den > 0), num / np.maximum(den, 1e-300), x["phi0"])
+    phi0 = np.clip(phi0, spec.lo * (1 + 1e-6), spec.hi * (1 - 1e-6))
+    values = {p.name: np.asarray(x[p.name]) for p in model.free} | {"phi0": phi0}
+    return to_unconstrained(model, values)
+
+
+def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = True):
+    """Stage 1: the response curves (toe, knee) held at their starts, σ from the
+    observed values; stage 2 (repeated ``reweight`` times): everything free, σ from the
+    current prediction. Returns the final u and per-stage records."""
+    from difstar._fit import make_args
+
+    stages = []
+    u = u0
+    plan = [("optics, exposure, source (response curves held)", ("toe", "knee"), False)]
+    plan += [("all free parameters, σ from the prediction", (), True)] * max(
+        1, int(solver.get("reweight", 1)))
+    for label, hold, reweight in plan:
+        sigma_from = fitter.predict(u) if reweight else None
+        data = observed_data(model, caps, noise, sigma_from)
+        args = make_args(model, data, u, hold=hold)
+        if verbose:
+            _log(f"difstar fit: stage {len(stages) + 1}: {label}")
+            _log(f"{'iter':>6} {'loss':>14} {'step size':>11}")
+
+        def progress(k, loss, size, done):
+            if k == 1 and not stages and "first_step" not in FIRST_STEP:
+                FIRST_STEP["first_step"] = seconds_since_process_start()
+                if verbose and FIRST_STEP["first_step"] is not None:
+                    _log(f"difstar fit: first step done {FIRST_STEP['first_step']:.1f} s "
+                         "after the command started")
+            if verbose:
+                _log(f"{k:>6d} {loss:>14.6g} {size:>11.3g}" + ("  (done)" if done else ""))
+
+        res = fitter.solve(u, args, max_steps=int(solver.get("max_steps", 100)),
+                           ftol=float(solver.get("ftol", 1e-6)), progress=progress)
+        u = res.u
+        stages.append({
+            "label": label, "held": list(hold), "steps": res.steps, "accepted": res.accepted,
+            "loss_start": res.loss_start, "loss_end": res.loss, "result": res.result,
+            "seconds": res.seconds, "compile_seconds": res.compile_seconds,
+        })
+        if verbose:
+            _log(f"difstar fit: stage {len(stages)} {res.result} after {res.steps} steps, "
+                 f"{res.seconds:.1f} s (+ {res.compile_seconds:.1f} s compile)")
+    t0 = time.perf_counter()
+    u, tries = restart_response_curves(fitter, model, u, args, solver, verbose=verbose)
+    if tries:
+        kept = [t for t in tries if t["kept"]]
+        stages.append({"label": "response-curve restarts", "tries": tries,
+                       "steps": sum(t["steps"] for t in tries),
+                       "result": f"{len(kept)} of {len(tries)} kept",
+                       "seconds": time.perf_counter() - t0, "compile_seconds": 0.0})
+    return u, stages, args
+
+
+#: Restarts of each channel's response-curve parameters, as factors of the value reached:
+#: the knee and toe of a channel whose captures barely reach its shoulder are weakly
+#: constrained, and Levenberg–Marquardt can stop in a shallow basin (a knee half or
+#: twice its true value) that the other channels' data do not pull it out of.
+RESTART_FACTORS = (0.5, 2.0)
+RESTARTED = ("knee",)
+
+
+def restart_response_curves(fitter, model, u, args, solver: dict, *, verbose: bool = True):
+    """From the converged ``u``, re-solve with each channel's knee moved by each of
+    :data:`RESTART_FACTORS` (inside its bounds), everything else as reached; keep any
+    start that ends at a lower loss. Returns (u, tries). (The toe, pinned by the
+    unsaturated dark pixels of every capture, has not needed it.)"""
+    from difstar._fit import from_unconstrained, to_unconstrained
+
+    best = fitter.loss(u, args)
+    tries = []
+    for name in RESTARTED:
+        spec = model.param.get(name)
+        if spec is None or not spec.free:
+            continue
+        for ch in range(spec.size):
+            for f in RESTART_FACTORS:
+                vals = {k: np.asarray(v) for k, v in from_unconstrained(model, u).items()}
+                x = vals[name].copy()
+                span = spec.hi[ch] - spec.lo[ch]
+                x[ch] = np.clip(x[ch] * f, spec.lo[ch] + 1e-3 * span, spec.hi[ch] - 1e-3 * span)
+                vals[name] = x
+                res = fitter.solve(to_unconstrained(model, vals), args,
+                                   max_steps=int(solver.get("max_steps", 100)),
+                                   ftol=float(solver.get("ftol", 1e-6)))
+                better = res.loss < best * (1 - 1e-9)
+                tries.append({"parameter": f"{name}[{ch}]", "factor": f, "loss": res.loss,
+                              "kept": bool(better), "steps": res.steps})
+                if verbose:
+                    _log(f"difstar fit: restart {name}[{'RGB'[ch] if spec.size == 3 else ch}] "
+                         f"× {f:g}: loss {res.loss:.7g} "
+                         f"({'lower: kept' if better else 'not lower'})")
+                if better:
+                    u, best = res.u, res.loss
+    return u, tries
+
+
+def _values(model, u) -> dict:
+    from difstar._fit import from_unconstrained
+
+    return {k: np.asarray(v) for k, v in from_unconstrained(model, u).items()}
+
+
+def exposure_range(fitter, model, u, caps) -> tuple[float, float]:
+    """Physical exposures H = C·t covered by the captures' pixels (min > 0, max)."""
+    pred = fitter.predict(u, full=True)
+    los, his = [], []
+    for cfg in model.configs:
+        p = pred[cfg.name]
+        img = np.asarray(p.image)  # (K, 3, h, w)
+        ts = np.asarray([c.exposure_time for c in model.captures_of(cfg.name)])
+        h = img * ts[:, None, None, None]
+        los.append(h[h > 0].min())
+        his.append(h.max())
+    return float(min(los)), float(max(his))
+
+
+def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, fitter=None,
+                 devices=None):
+    """Fit once. Returns (result document, model, caps, fitter, u). ``devices``: share
+    the Jacobian's columns out over that many devices (``Fitter(devices=)``)."""
+    import jax
+
+    from difstar._fit import Fitter, to_unconstrained
+
+    t_all = time.perf_counter()
+    if model is None:
+        model, caps = prepare(man)
+    if fitter is None:
+        fitter = Fitter(model, method=man.solver["method"], rtol=man.solver["rtol"],
+                        atol=man.solver["atol"], devices=devices)
+    if u0 is None:
+        u0 = to_unconstrained(model)
+    u0 = photometric_start(model, caps, u0)
+    if verbose:
+        _log(f"difstar fit: {len(model.captures)} captures, {model.n_free} free parameters, "
+             f"grids " + ", ".join(f"{c.name}: n = {c.grid.n}, crop = {c.grid.crop}"
+                                    for c in model.configs))
+    u, stages, args = run_stages(fitter, model, caps, man.noise, u0, man.solver,
+                                 verbose=verbose)
+    t0 = time.perf_counter()
+    cov, se, diag = fitter.covariance(u, args)
+    t_cov = time.perf_counter() - t0
+    x = _values(model, u)
+    params = {}
+    for p in model.params:
+        d = {"value": x[p.name].tolist(), "free": p.free, "start": p.start.tolist()}
+        if p.free:
+            d["stderr"] = se[p.name].tolist()
+            d["bounds"] = [p.lo.tolist(), p.hi.tolist()]
+            at = (np.isclose(x[p.name], p.lo, rtol=1e-4, atol=0)
+                  | np.isclose(x[p.name], p.hi, rtol=1e-4, atol=0))
+            d["at_bound"] = bool(np.any(at))
+        params[p.name] = d
+    n = model.camera.n_blades
+    period = 2 * math.pi / n
+    derived = {
+        "rotation_mod_symmetry_deg": float(np.rad2deg(float(x["rotation"]) % period)),
+        "circumradius_mm": float(x["circumradius"]) * 1e3,
+        "entrance_f_number": model.camera.focal_length * model.camera.pupil_magnification
+        / (2 * float(x["circumradius"])),
+    }
+    result = {
+        "schema": "difstar-fit-result/1", "manifest": str(man.path), "name": man.name,
+        "parameters": params, "derived": derived,
+        "convergence": {"solver": {"lm": "optimistix.LevenbergMarquardt",
+                                   "gn": "optimistix.GaussNewton"}[fitter.method],
+                        "stages": stages, **diag},
+        "timing_s": {"total": time.perf_counter() - t_all, "covariance": t_cov,
+                     "first_step_since_start": FIRST_STEP.get("first_step"),
+                     "solve": sum(s["seconds"] for s in stages),
+                     "compile": sum(s["compile_seconds"] for s in stages)},
+        "jax": {"version": jax.__version__, "backend": jax.default_backend(),
+                "x64": bool(jax.config.jax_enable_x64)},
+    }
+    if man.truth is not None:
+        h_range = exposure_range(fitter, model, u, caps)
+        result["truth_comparison"] = compare_truth(model, x, man.truth, h_range, se)
+    return result, model, caps, fitter, u
+
+
+# ------------------------------------------------------------------------ synth
+
+def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
+    """Simulate the manifest's captures from ``synthetic.truth`` on full frames and
+    write them as DNGs into ``out_dir`` (whole or not at all). ``out_dir`` is checked
+    before the computation (output policy of :mod:`difstar.io._output`; it may replace a
+    folder holding exactly these captures), and never replaces the manifest."""
+    from difstar._fit import Fitter, to_unconstrained
+    from difstar.io._dng import synthesize_capture, write_dng
+    from difstar.io._output import output_dir
+
+    syn = man.synthetic
+    fh, fw = syn["frame_size"]
+    pattern = man.camera.get("pattern", "RGGB")
+    written = []
+    with output_dir(out_dir, overwrite=overwrite, inputs=[man.path],
+                    replaceable=synth_replaceable(man), command="synth") as tmp:
+        model = build_model(
+            man, crops={k: (fh, fw) for k in man.configurations},
+            base_offsets={c.name: (c.source_position[0] - fh // 2,
+                                   c.source_position[1] - fw // 2) for c in man.captures},
+            exposure_times={c.name: c.exposure_time for c in man.captures}, pattern=pattern,
+            padding=syn["padding"], values=syn["truth"],
+        )
+        model = model.with_values(syn["truth"])
+        _log("difstar synth: grids " + ", ".join(f"{c.name}: n = {c.grid.n}"
+                                                 for c in model.configs))
+        pred = Fitter(model).predict(to_unconstrained(model))
+        rng = np.random.default_rng(int(syn["seed"]))
+        black, white = float(syn["black_level"]), int(syn["white_level"])
+        r = float(syn["truth"]["circumradius"])
+        f_number = man.camera["focal_length"] * man.camera["pupil_magnification"] / (2 * r)
+        for cfg in model.configs:
+            for i, c in enumerate(model.captures_of(cfg.name)):
+                entry = next(e for e in man.captures if e.name == c.name)
+                z = np.asarray(pred[cfg.name][i])
+                if not np.all(np.isfinite(z)):
+                    raise RuntimeError(f"synthesized capture {c.name} holds NaN or infinity")
+                z = np.clip(z, 0.0, None)
+                raw = synthesize_capture(
+                    z, black_level=black, white_level=white,
+                    gain_e_per_dn=man.noise["gain_e_per_dn"],
+                    read_noise_dn=man.noise["read_noise_dn"], rng=rng)
+                write_dng(tmp / entry.path.name, raw, pattern=pattern, black_level=black,
+                          white_level=white, exposure_time=c.exposure_time, f_number=f_number,
+                          focal_length=man.camera["focal_length"],
+                          camera_white_balance=man.camera["white_balance"])
+                written.append(Path(out_dir) / entry.path.name)
+                _log(f"difstar synth: {entry.path.name}: t = {c.exposure_time:g} s, "
+                     f"saturated {np.mean(raw >= white) * 100:.2f} %")
+    return written
+
+
+def synth_replaceable(man):
+    """What ``synth --overwrite`` may replace in a folder without difstar's marker: a
+    DNG that difstar wrote, under the name of one of the manifest's captures (never a
+    camera's own RAW file, nor any other file)."""
+    from difstar.io._dng import written_by_difstar
+
+    names = {c.path.name for c in man.captures}
+    return lambda p: p.name in names and written_by_difstar(p)
