@@ -619,7 +619,7 @@ def test_design_arguments(work, capsys):
                         (["--max-curvature", "inf"], "--max-curvature")):
         refused(["design", "--out", work / "o", *args], capsys, work, field)
     # the same checks in the Python API
-    from difstar._design_cli import iris_study
+    from difstar._design_study import iris_study
     from difstar._validate import InputError
 
     for kw, field in ((dict(f_number=-1.0), "f_number"), (dict(steps=0), "steps"),

@@ -28,12 +28,15 @@ SWEEP = {"designs": [{"name": "straight", "curvature": 0.0},
 def no_compute(monkeypatch):
     """The study and the sweep's measures fail the test if reached."""
     import difstar._design_cli as cli
+    import difstar._design_study as study
 
     def reached(*a, **k):
         raise AssertionError("computing started before the input was refused")
 
-    for name in ("iris_study", "sweep_designs", "measures_fn"):
+    for name in ("iris_study", "sweep_designs"):
         monkeypatch.setattr(cli, name, reached)
+    for name in ("iris_study", "sweep_designs", "measures_fn"):
+        monkeypatch.setattr(study, name, reached)
 
 
 def _one_line(err: str) -> str:
@@ -144,7 +147,7 @@ def test_too_many_designs_are_refused_up_front(work, capsys, no_compute, monkeyp
 
 
 def test_a_fine_curvature_grid_has_distinct_names():
-    from difstar._design_cli import curvature_grid, parse_sweep
+    from difstar._design_study import curvature_grid, parse_sweep
 
     names = [d["name"] for d in curvature_grid("0.1", "0.1001", "11", blades=5)]
     assert len(set(names)) == 11 and names[0] == "curvature=0.1", names
@@ -261,7 +264,7 @@ def test_bad_study_combinations_are_refused_up_front(work, capsys, no_compute, a
 
 
 def test_the_suggested_vertex_bound_is_accepted():
-    from difstar._design_cli import check_study_args
+    from difstar._design_study import check_study_args
 
     for blades in (3, 9, 12, 30, 64):
         for mc in (0.2, 0.6, 0.95):
@@ -277,7 +280,7 @@ def test_the_suggested_vertex_bound_is_accepted():
 
 def test_python_api_refuses_before_computing():
     from difstar._design import IrisFamily, design
-    from difstar._design_cli import check_convex, iris_study, parse_sweep, study_setup
+    from difstar._design_study import check_convex, iris_study, parse_sweep, study_setup
 
     for kw, field in ((dict(blades=12), "vertex_bound"), (dict(f_number=0.5), "f_number"),
                       (dict(f_number=math.inf), "f_number"), (dict(steps=10**6), "steps"),
@@ -310,7 +313,7 @@ def test_python_api_refuses_before_computing():
 
 def test_the_schema_and_the_checks_agree_on_the_repository_sweep():
     """The sweep of the docs and the schema's example pass both, for their blade count."""
-    from difstar._design_cli import parse_sweep
+    from difstar._design_study import parse_sweep
     from difstar.io._scene import load_schema
 
     for doc in (SWEEP, *load_schema("design_sweep")["examples"]):

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from difstar import _batch as B
-from difstar._design_cli import curvature_grid, parse_sweep
+from difstar._design_study import curvature_grid, parse_sweep
 from difstar._validate import InputError
 from difstar.cli import main
 
@@ -38,7 +38,7 @@ CHILD = textwrap.dedent('''
     import json, sys
     import jax, numpy as np
     jax.config.update("jax_enable_x64", True)
-    from difstar._design_cli import measure, parse_sweep, study_setup, sweep_designs
+    from difstar._design_study import measure, parse_sweep, study_setup, sweep_designs
     sweep = json.loads(sys.argv[1])
     designs = parse_sweep(sweep, blades=9)
     family, setup, opts = study_setup(blades=9, quick=True)
@@ -226,7 +226,7 @@ def test_bad_optimiser_flag_is_refused_before_computing(tmp_path, capsys, monkey
 
 @pytest.mark.slow
 def test_study_with_lbfgsb_keeps_the_bounds():
-    from difstar._design_cli import iris_study
+    from difstar._design_study import iris_study
 
     r = iris_study(quick=True, steps=8, optimiser="lbfgsb", max_curvature=0.4,
                    vertex_bound=0.01, log=lambda m: None)

@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 #: (the full measures are sharded and checked against one device in test_design_cli.py)
 GEOMETRIC = textwrap.dedent('''
     import jax.numpy as jnp
-    import difstar._design_cli as D
+    import difstar._design_study as D
 
     def geometric(family, setup, opts):
         def values(p):
@@ -179,7 +179,7 @@ def test_two_processes_give_the_one_process_results(tmp_path, monkeypatch):
     """map_batch of 8 PSFs and `difstar design --sweep-curvature ... --devices 2` across
     two processes equal one process on one device to rounding; the PSFs are written once,
     by process 0."""
-    import difstar._design_cli as D
+    import difstar._design_study as D
     from difstar.cli import main
 
     space: dict = {}

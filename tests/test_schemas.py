@@ -154,7 +154,7 @@ def _reader_checks(kind: str, doc, where: str) -> None:
 
         manifest_from_dict(doc, path=REPO / where if (REPO / where).is_file() else where)
     elif kind == "design_sweep":
-        from difstar._design_cli import parse_sweep
+        from difstar._design_study import parse_sweep
 
         lists = [v for d in doc.get("designs", []) for k, v in d.items()
                  if k in ("radial", "angular") and isinstance(v, list)]
