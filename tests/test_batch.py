@@ -21,6 +21,10 @@ import numpy as np
 import pytest
 
 from difstar import _batch as B
+
+from difstar import _batch_fits as BF
+
+from difstar import _distributed as DI
 from difstar._validate import InputError
 
 #: several host devices, their Eigen operations single-threaded (so that 4 devices on 2
@@ -93,6 +97,8 @@ CHILD = textwrap.dedent('''
     import equinox as eqx
     import difstar
     from difstar import _batch as B
+    from difstar import _batch_fits as BF
+    from difstar import _distributed as DI
     sys.path.insert(0, "tests")
     out = {"devices": jax.device_count()}
 
@@ -136,7 +142,7 @@ CHILD = textwrap.dedent('''
     seq = [fitter.solve(u, a, max_steps=6) for u, a in zip(u0s, args)]
     stacked = jax.tree_util.tree_map(lambda *x: np.stack([np.asarray(v) for v in x]), *args)
     for d in (1, 3):
-        res = B.solve_many(fitter, u0s, stacked, devices=d, max_steps=6)
+        res = BF.solve_many(fitter, u0s, stacked, devices=d, max_steps=6)
         out[f"fit_du_{d}"] = max(float(np.abs(r.u - np.asarray(q.u)).max())
                                  for r, q in zip(res, seq))
         out[f"fit_loss_{d}"] = max(abs(r.loss - q.loss) / q.loss for r, q in zip(res, seq))
@@ -199,6 +205,8 @@ HANG_CHILD = textwrap.dedent('''
     import jax, numpy as np
     jax.config.update("jax_enable_x64", True)
     from difstar import _batch as B
+    from difstar import _batch_fits as BF
+    from difstar import _distributed as DI
     sys.path.insert(0, "tests")
     from test_fit import F, _data, _model, _start
     model = _model()
@@ -209,10 +217,10 @@ HANG_CHILD = textwrap.dedent('''
     out = {"devices": jax.device_count()}
     t0 = time.perf_counter()
     plans = []
-    many = B.solve_many(fitter, u0, args, devices=4, max_steps=3, chunk=8, plan_out=plans)
+    many = BF.solve_many(fitter, u0, args, devices=4, max_steps=3, chunk=8, plan_out=plans)
     out["seconds_4"] = time.perf_counter() - t0
     out["per_device"] = plans[0].per_device
-    one = B.solve_many(fitter, u0, args, devices=1, max_steps=3)
+    one = BF.solve_many(fitter, u0, args, devices=1, max_steps=3)
     out["du"] = max(float(np.abs(a.u - b.u).max()) for a, b in zip(many, one))
     out["moved"] = max(float(np.abs(a.u - u).max()) for a, u in zip(one, u0))
 
@@ -223,9 +231,9 @@ HANG_CHILD = textwrap.dedent('''
             r = f.solve(u0[i], arg[i], max_steps=2)
             return f.solve(r.u, arg[i], max_steps=1)
         return run
-    got = B.FitBatcher(fitter, devices=4).run([job(i) for i in range(8)])
-    two = B.solve_many(fitter, u0, args, devices=1, max_steps=2)
-    two = B.solve_many(fitter, np.stack([t.u for t in two]), args, devices=1, max_steps=1)
+    got = BF.FitBatcher(fitter, devices=4).run([job(i) for i in range(8)])
+    two = BF.solve_many(fitter, u0, args, devices=1, max_steps=2)
+    two = BF.solve_many(fitter, np.stack([t.u for t in two]), args, devices=1, max_steps=1)
     out["batcher_du"] = max(float(np.abs(np.asarray(g.u) - o.u).max())
                             for g, o in zip(got, two))
     print("RESULT " + json.dumps(out), flush=True)

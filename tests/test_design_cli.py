@@ -18,6 +18,10 @@ import numpy as np
 import pytest
 
 from difstar import _batch as B
+
+from difstar import _batch_fits as BF
+
+from difstar import _distributed as DI
 from difstar._design_study import curvature_grid, parse_sweep
 from difstar._validate import InputError
 from difstar.cli import main

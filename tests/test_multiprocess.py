@@ -28,6 +28,10 @@ import numpy as np
 import pytest
 
 from difstar import _batch as B
+
+from difstar import _batch_fits as BF
+
+from difstar import _distributed as DI
 from difstar._validate import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,10 +70,12 @@ WORKER = GEOMETRIC + "D.measures_fn = geometric\n" + textwrap.dedent(f'''
     import numpy as np
     import difstar
     from difstar import _batch as B
+    from difstar import _batch_fits as BF
+    from difstar import _distributed as DI
     from difstar.cli import main
 
     out = sys.argv[1]
-    joined = B.init_distributed()
+    joined = DI.init_distributed()
     me = jax.process_index()
     r = {{"process": me, "processes": jax.process_count(), "devices": jax.device_count(),
          "local_devices": jax.local_device_count(), "joined": joined}}
@@ -78,7 +84,7 @@ WORKER = GEOMETRIC + "D.measures_fn = geometric\n" + textwrap.dedent(f'''
     kw = dict(z_image=0.05, defocus=2e-4, pixel_pitch=4e-6, shape=(24, 24))
     plan = difstar.plan_psf(pupil, wavelength=lams, **kw)
     psfs = B.map_batch(lambda lam: difstar.psf(pupil, wavelength=lam, plan=plan, **kw), lams)
-    if B.writes_output():  # every process holds every PSF; one writes them
+    if DI.writes_output():  # every process holds every PSF; one writes them
         np.save(os.path.join(out, f"psfs-written-by-{{me}}.npy"), psfs)
     # one --out for both processes: process 0 alone checks and commits it
     r["sweep_rc"] = main({SWEEP!r} + ["--devices", "2", "--out",
@@ -92,6 +98,8 @@ KILL_WORKER = GEOMETRIC + "D.measures_fn = geometric\n" + textwrap.dedent('''
     import os, sys, time
     import jax
     from difstar import _batch as B
+    from difstar import _batch_fits as BF
+    from difstar import _distributed as DI
     from difstar.cli import main
 
     out, victim = sys.argv[1], int(sys.argv[2])
@@ -109,10 +117,10 @@ KILL_WORKER = GEOMETRIC + "D.measures_fn = geometric\n" + textwrap.dedent('''
         return real_gather(tree)
 
     B.gather = gather
-    B.init_distributed()
+    DI.init_distributed()
     if jax.process_index() == 0:
         with open(os.path.join(out, "coordinator.pid"), "w") as f:
-            f.write(str(B._JOB["helper"].pid))
+            f.write(str(DI._JOB["helper"].pid))
     me = jax.process_index()
     sys.exit(main(["--x64", "design", "--sweep-curvature", "0", "0.9", "12", "--chunk", "2",
                    "--devices", "2", "--out", os.path.join(out, f"sweep{me}")]))
@@ -137,7 +145,7 @@ def start_pair(code: str | None, args: list[str], logs: Path, **extra) -> list[s
         env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}",
                    JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(i), TMPDIR=str(logs / "systmp"),
                    **extra)
-        for k in ("XLA_FLAGS", B.ENV_DEVICES, B.ENV_DRY_RUN):
+        for k in ("XLA_FLAGS", B.ENV_DEVICES, DI.ENV_DRY_RUN):
             env.pop(k, None)
         cmd = ["-m", "difstar.cli"] if code is None else ["-c", code]
         with open(logs / f"out{i}.txt", "w") as o, open(logs / f"err{i}.txt", "w") as e:
@@ -296,7 +304,7 @@ def test_a_killed_process_ends_the_other_with_one_line(tmp_path, victim):
     err = (tmp_path / f"err{1 - victim}.txt").read_text()
     lines = err.strip().splitlines()
     errors = [x for x in lines if "error" in x.lower()]
-    assert survivor.returncode == B.EXIT_LOST == 2, (survivor.returncode, err)
+    assert survivor.returncode == DI.EXIT_LOST == 2, (survivor.returncode, err)
     assert errors == [f"difstar: error: process {victim} of 2 stopped responding; the job is "
                       "ended, nothing was written"], err
     assert lines[-1] == errors[0], err
@@ -363,9 +371,9 @@ def test_dry_run_prints_the_mesh_and_each_process_work(tmp_path, monkeypatch, ca
     or written; the mesh and each process's items are printed, exit status 0."""
     from difstar.cli import main
 
-    monkeypatch.setattr(B, "_JOB", {})
+    monkeypatch.setattr(DI, "_JOB", {})
     monkeypatch.delenv(B.ENV_DEVICES, raising=False)
-    monkeypatch.setenv(B.ENV_DRY_RUN, "1")
+    monkeypatch.setenv(DI.ENV_DRY_RUN, "1")
     monkeypatch.setenv("JAX_COORDINATOR_ADDRESS", "127.0.0.1:1")  # never contacted
     monkeypatch.setenv("JAX_NUM_PROCESSES", "2")
     have = jax.local_device_count()
@@ -373,7 +381,7 @@ def test_dry_run_prints_the_mesh_and_each_process_work(tmp_path, monkeypatch, ca
                             "items 0–2", "process 1:"]),
                        (1, ["process 1:"])):
         monkeypatch.setenv("JAX_PROCESS_ID", str(me))
-        monkeypatch.setattr(B, "_JOB", {})
+        monkeypatch.setattr(DI, "_JOB", {})
         with pytest.raises(SystemExit) as e:
             main(["design", "--sweep-curvature", "0", "0.9", "5", "--quick", "--chunk",
                   str(3 * 2 * have), "--devices", str(2 * have), "--out", str(tmp_path / "o")])
@@ -389,13 +397,13 @@ def test_dry_run_prints_the_mesh_and_each_process_work(tmp_path, monkeypatch, ca
             x.startswith(w) for x, w in zip(procs, expect)), got
         assert got[-1] == "nothing was computed or written."
         assert not list(tmp_path.iterdir())
-    monkeypatch.setenv(B.ENV_DRY_RUN, "maybe")
+    monkeypatch.setenv(DI.ENV_DRY_RUN, "maybe")
     with pytest.raises(InputError, match="DIFSTAR_DRY_RUN"):
-        B.dry_run()
+        DI.dry_run()
 
 
 def test_plan_lines_give_each_process_its_items():
-    launch = B.Launch("h:1", 2, 0, None, "SLURM (srun)")
+    launch = DI.Launch("h:1", 2, 0, None, "SLURM (srun)")
     lines = B.plan_lines(10, 4, chunk=4, launch=launch, local_devices=2)
     assert lines[1] == "work: 10 items in 3 chunk(s) of 4 (1 per device), 2 padding item(s)"
     assert lines[2:] == ["process 0: devices 0–1: items 0–1, 4–5, 8–9",
@@ -440,11 +448,11 @@ def slurm_port(job_id: int) -> int:  # JAX's choice: the job id in the top 4096 
                                                               "JAX_COORDINATOR_ADDRESS")),
 ])
 def test_launchers_map_to_the_job(env, want):
-    got = B.launch_from_env(env)
+    got = DI.launch_from_env(env)
     if want is None:
         assert got is None
     else:
-        assert got == B.Launch(*want)
+        assert got == DI.Launch(*want)
 
 
 @pytest.mark.parametrize("env, words", [
@@ -461,7 +469,7 @@ def test_launchers_map_to_the_job(env, want):
 ])
 def test_launcher_mistakes_are_one_line(env, words):
     with pytest.raises(InputError) as e:
-        B.launch_from_env(env)
+        DI.launch_from_env(env)
     assert words in str(e.value) and "\n" not in str(e.value)
 
 
@@ -477,8 +485,8 @@ def test_a_process_that_does_not_write_never_touches_the_destination(tmp_path, m
     systmp.mkdir()
     monkeypatch.setenv("TMPDIR", str(systmp))
     monkeypatch.setattr(_output.tempfile, "tempdir", None)  # re-read TMPDIR
-    monkeypatch.setattr(B, "_JOB", {"launch": B.Launch("h:1", 2, 1, None, "JAX_* variables")})
-    assert not B.writes_output()
+    monkeypatch.setattr(DI, "_JOB", {"launch": DI.Launch("h:1", 2, 1, None, "JAX_* variables")})
+    assert not DI.writes_output()
     dest = tmp_path / "out" / "result"
     dest.mkdir(parents=True)
     (dest / "keep.txt").write_text("the user's")
@@ -500,6 +508,6 @@ def test_a_process_that_does_not_write_never_touches_the_destination(tmp_path, m
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == before == ["result"]
     assert sorted(p.name for p in dest.iterdir()) == ["keep.txt"]
     assert list(systmp.iterdir()) == []
-    monkeypatch.setattr(B, "_JOB", {"launch": B.Launch("h:1", 2, 0, None, "JAX_* variables")})
+    monkeypatch.setattr(DI, "_JOB", {"launch": DI.Launch("h:1", 2, 0, None, "JAX_* variables")})
     with pytest.raises(_output.OutputExistsError):  # process 0: the usual checks
         _output.check_output_free(dest)

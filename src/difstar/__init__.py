@@ -8,7 +8,7 @@ The command line and file I/O live in ``difstar.io`` and ``difstar.cli``.
 from ._atf import atf as atf
 from ._cfa import bayer_masks as bayer_masks
 from ._batch import device_mesh as device_mesh
-from ._batch import init_distributed as init_distributed
+from ._distributed import init_distributed as init_distributed
 from ._batch import map_batch as map_batch
 from ._batch import simulate_spectral as simulate_spectral
 from ._cfa import mosaic as mosaic

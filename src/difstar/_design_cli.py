@@ -131,7 +131,8 @@ def _cmd_sweep(a) -> int:
     (its outline only)."""
     import os
 
-    from difstar._batch import ENV_DEVICES, check_chunk, device_count, init_distributed
+    from difstar._batch import ENV_DEVICES, check_chunk, device_count
+    from difstar._distributed import init_distributed
     from difstar._validate import MAX_BLADES, InputError, check_number
     from difstar.io._output import check_output_free, output_dir, write_json
 

@@ -450,7 +450,7 @@ class Fitter:
 
     ``devices`` (a count, as ``--devices``; default one device): the Jacobian's columns
     are shared out over that many devices (see :func:`make_residual_fn`); a Fitter on
-    several devices is for one fit at a time (many fits: :func:`difstar._batch.solve_many`
+    several devices is for one fit at a time (many fits: :func:`difstar._batch_fits.solve_many`
     with a one-device Fitter).
     """
 

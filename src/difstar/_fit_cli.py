@@ -191,7 +191,8 @@ def _cmd_fit(a) -> int:
     devices = None
     if not a.recovery_study and (getattr(a, "devices", None) is not None
                                  or os.environ.get(ENV_DEVICES, "").strip()):
-        from difstar._batch import device_count, init_distributed
+        from difstar._batch import device_count
+        from difstar._distributed import init_distributed
 
         init_distributed()
         devices = device_count(a.devices)  # a single fit: its Jacobian's columns shared out

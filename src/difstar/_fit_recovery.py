@@ -18,7 +18,7 @@ def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None) -
     """Fit from ``n_starts`` perturbed starts. With ``devices`` (or ``DIFSTAR_DEVICES``)
     the fits run together, each the code of one fit (``fit_manifest``) with every
     stage's solves of all fits batched and sharded over that many devices
-    (:class:`difstar._batch.FitBatcher`), ``chunk`` fits at a time at most (default:
+    (:class:`difstar._batch_fits.FitBatcher`), ``chunk`` fits at a time at most (default:
     as many as fit in memory); without, one after another."""
     import os
 
@@ -51,7 +51,9 @@ def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None) -
             rows.append(row_of(i, res, t0))
             _log(_row_text(i, rows[-1]))
     else:
-        from difstar._batch import FitBatcher, device_count, init_distributed
+        from difstar._batch import device_count
+        from difstar._batch_fits import FitBatcher
+        from difstar._distributed import init_distributed
 
         init_distributed()
         n_dev = device_count(devices)

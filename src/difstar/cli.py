@@ -209,7 +209,7 @@ def _cmd_predict(a) -> int:
     if a.devices is not None or os.environ.get("DIFSTAR_DEVICES", "").strip():
         # first of all: the job is joined before anything touches a device (the example
         # and the scene below build JAX arrays), as jax.distributed requires
-        from difstar._batch import init_distributed
+        from difstar._distributed import init_distributed
 
         init_distributed()
     if a.example:

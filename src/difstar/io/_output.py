@@ -27,7 +27,7 @@ The output policy (README, "Where difstar writes"):
   result is removed; a run killed between the two renames leaves a temporary folder that
   the next run puts back (the old result returns to its place).
 - In a job of several processes (``jax.distributed``; docs/sharding.md) only the writing
-  process (:func:`difstar._batch.writes_output`: process 0) checks and commits the
+  process (:func:`difstar._distributed.writes_output`: process 0) checks and commits the
   destination. The others compute the same results and write them into a temporary
   folder of their own in the system's temporary folder (``tempfile.gettempdir()``,
   named, marked and locked as above), which is removed at the end without being committed:
@@ -392,9 +392,9 @@ def _signals_raise():
 
 
 def _writes_output() -> bool:
-    """Whether this process writes the outputs: :func:`difstar._batch.writes_output`
+    """Whether this process writes the outputs: :func:`difstar._distributed.writes_output`
     (process 0 of a multi-process job, or a process alone)."""
-    from .._batch import writes_output
+    from .._distributed import writes_output
 
     return writes_output()
 
