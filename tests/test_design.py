@@ -9,15 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from difstar._design import (
-    Box,
-    IrisFamily,
-    PSFSetup,
+from difstar._design import IrisFamily, PSFSetup, convexity_bound, design
+from difstar._design_measures import (
     angular_profile,
     bokeh_nonuniformity,
-    convexity_bound,
     core_energy,
-    design,
     halo_anisotropy,
     image_mismatch,
     spike_energy,

@@ -76,22 +76,22 @@ from ._design import (
 from ._design import (
     PSFSetup as PSFSetup,
 )
-from ._design import (
+from ._design_measures import (
     bokeh_nonuniformity as bokeh_nonuniformity,
 )
-from ._design import (
+from ._design_measures import (
     core_energy as core_energy,
 )
 from ._design import (
     design as design,
 )
-from ._design import (
+from ._design_measures import (
     halo_anisotropy as halo_anisotropy,
 )
-from ._design import (
+from ._design_measures import (
     image_mismatch as image_mismatch,
 )
-from ._design import (
+from ._design_measures import (
     spike_energy as spike_energy,
 )
 from ._examples import paper_camera as paper_camera

@@ -141,7 +141,7 @@ def measures_fn(family, setup, opts):
     one design, :func:`sweep_designs` maps it over many."""
     import jax.numpy as jnp
 
-    from difstar._design import (
+    from difstar._design_measures import (
         bokeh_nonuniformity,
         core_energy,
         halo_anisotropy,
@@ -181,7 +181,7 @@ def study_objective(family, setup, opts, *, bokeh_weight: float = 0.0):
     """The study's objective ``params → (value, {"halo_anisotropy", ["bokeh_cv"]})``:
     the halo anisotropy of the focused PSF plus ``bokeh_weight`` × the defocused
     highlight's coefficient of variation."""
-    from difstar._design import bokeh_nonuniformity, halo_anisotropy
+    from difstar._design_measures import bokeh_nonuniformity, halo_anisotropy
 
     rb = setup.blur_radius(family.area)
 
