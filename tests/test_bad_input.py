@@ -904,13 +904,8 @@ def test_manifest_junk_never_escapes_as_another_error(path, value):
 
 
 def test_validate_module_units():
-    from difstar._validate import (
-        InputError,
-        check_number,
-        check_polygon_vertices,
-        json_depth,
-        loads_strict,
-    )
+    from difstar._validate import InputError, check_number, check_polygon_vertices
+    from difstar.io._json import json_depth, loads_strict
 
     with pytest.raises(InputError, match=r"field a/1: Infinity"):
         loads_strict('{"a": [1, Infinity]}', source="x")

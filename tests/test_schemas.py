@@ -175,7 +175,7 @@ def test_outputs_without_a_schema_are_strict_json():
     """What `difstar fit-image` and the campaign scripts write (no schema yet) is at
     least JSON that difstar's strict reader takes (no NaN or Infinity): the campaign
     scripts read result.json back."""
-    from difstar._validate import loads_strict
+    from difstar.io._json import loads_strict
 
     for p in _json_files():
         rel = str(p.relative_to(REPO))

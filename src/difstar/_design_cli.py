@@ -94,7 +94,8 @@ STUDY_DEFAULT_ARGS = {"max_curvature": 0.6, "vertex_bound": 0.015, "bokeh_weight
 def _read_sweep_file(path: Path, *, blades: int) -> list[dict]:
     """The designs of the ``--sweep`` file: strict JSON, then the schema and
     :func:`parse_sweep`'s checks (no computation)."""
-    from difstar._validate import InputError, loads_strict
+    from difstar._validate import InputError
+    from difstar.io._json import loads_strict
 
     # as difstar.io._scene.read_json, which is typed to return an object: a sweep file
     # holding an array is refused by parse_sweep, naming what a sweep is

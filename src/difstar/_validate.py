@@ -5,9 +5,8 @@ field and says what would work, e.g. ``camera/sensor/phi0/1: NaN is not a finite
 number; give a finite number > 0``. The command line turns these into exit code 2 with
 that one line and no traceback.
 
-- JSON: :func:`loads_strict` refuses ``NaN``/``Infinity`` (Python's ``json`` reads them),
-  numbers that overflow to infinity, and documents nested too deeply, naming the field;
-  :func:`check_finite_doc` does the same for a document built in Python.
+- JSON documents are checked in :mod:`difstar.io._json` (``loads_strict``,
+  ``check_finite_doc``).
 - numbers: :func:`check_number` (finite, in range, the field and the fix).
 - physics: :func:`check_camera_scene` (finite, positive where it must be, the object
   beyond what the lens can focus, an obstruction inside the pupil);
@@ -26,12 +25,9 @@ that one line and no traceback.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
-from collections.abc import Iterable
-from typing import Any
 
 import numpy as np
 
@@ -53,140 +49,6 @@ from ._limits import (
     InputError,
     check_edge_count,
 )
-
-# ----------------------------------------------------------------------------- JSON
-
-
-class _NonFinite:
-    """What ``json`` hands ``parse_constant`` for NaN / Infinity / -Infinity."""
-
-    __slots__ = ("text",)
-
-    def __init__(self, text: str):
-        self.text = text
-
-    def __repr__(self) -> str:
-        return self.text
-
-
-class _Duplicated(dict):
-    """A JSON object in which a key was given twice (``duplicate``: the first such)."""
-
-    duplicate: Any = None
-
-
-def _path_str(path: Iterable) -> str:
-    return "/".join(str(p) for p in path) or "(top level)"
-
-
-def _walk(doc: Any):
-    """Yield (path tuple, leaf value) for every leaf, depth first, without recursion."""
-    stack = [((), doc)]
-    while stack:
-        path, v = stack.pop()
-        if isinstance(v, dict):
-            for k in reversed(list(v)):
-                stack.append(((*path, k), v[k]))
-        elif isinstance(v, (list, tuple)):
-            for i in range(len(v) - 1, -1, -1):
-                stack.append(((*path, i), v[i]))
-        else:
-            yield path, v
-
-
-def json_depth(doc: Any) -> int:
-    """Nesting depth of a parsed JSON document (a scalar is 0), without recursion."""
-    deepest = 0
-    stack = [(doc, 0)]
-    while stack:
-        v, d = stack.pop()
-        if isinstance(v, dict):
-            stack.extend((x, d + 1) for x in v.values())
-            deepest = max(deepest, d + 1)
-        elif isinstance(v, (list, tuple)):
-            stack.extend((x, d + 1) for x in v)
-            deepest = max(deepest, d + 1)
-    return deepest
-
-
-def _bad_number(v) -> str | None:
-    """Why ``v`` is not a usable number, or None (non-numbers are the schema's job)."""
-    if isinstance(v, _NonFinite):
-        return f"{v.text} is not a finite number (JSON has no NaN or Infinity)"
-    if isinstance(v, bool):
-        return None
-    if isinstance(v, (float, np.floating)):
-        if not math.isfinite(float(v)):
-            return f"{float(v)!r} is not a finite number"
-    elif isinstance(v, (int, np.integer)):
-        if abs(int(v)) > 2**53:
-            return f"{v} is too large to be a number difstar can use"
-    elif isinstance(v, np.ndarray) and v.dtype.kind in "fc":
-        if not np.all(np.isfinite(v)):
-            return "contains NaN or infinity"
-    return None
-
-
-def check_finite_doc(doc: Any, *, source: str = "<document>") -> None:
-    """Refuse a document (parsed JSON or built in Python) holding a non-finite or
-    overflowing number, or nested deeper than :data:`MAX_JSON_DEPTH`."""
-    depth = json_depth(doc)
-    if depth > MAX_JSON_DEPTH:
-        raise InputError(
-            f"{source}: the document is nested {depth} levels deep; a difstar document "
-            f"needs at most {MAX_JSON_DEPTH} (check the brackets)."
-        )
-    for path, v in _walk(doc):
-        why = _bad_number(v)
-        if why:
-            raise InputError(f"{source}: field {_path_str(path)}: {why}; give a finite number.")
-
-
-def loads_strict(text: str, *, source: str = "<document>") -> Any:
-    """``json.loads`` that refuses NaN, Infinity, numbers that overflow and deep nesting,
-    with the field's path in the message (:class:`InputError`); also a key given twice
-    in one object (the field's path named)."""
-    duplicated = []
-
-    def pairs(kv):  # a key given twice: JSON readers silently keep the last one
-        d = dict(kv)
-        if len(d) != len(kv):
-            duplicated.append(True)
-            seen: set = set()
-            dup = next(k for k, _ in kv if k in seen or seen.add(k))
-            d = _Duplicated(d)
-            d.duplicate = dup
-        return d
-
-    try:
-        doc = json.loads(text, parse_constant=_NonFinite, object_pairs_hook=pairs)
-    except RecursionError:
-        raise InputError(
-            f"{source}: the JSON is nested too deeply to read; a difstar document needs "
-            f"at most {MAX_JSON_DEPTH} levels (check the brackets)."
-        ) from None
-    except json.JSONDecodeError as exc:
-        raise InputError(
-            f"{source}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
-        ) from None
-    except ValueError as exc:  # e.g. an integer with more digits than Python converts
-        raise InputError(f"{source}: not valid JSON: {exc}") from None
-    stack = [((), doc)] if duplicated else []  # the first key given twice, its path
-    while stack:
-        path, v = stack.pop()
-        if isinstance(v, _Duplicated):
-            raise InputError(
-                f"{source}: field {_path_str((*path, v.duplicate))}: the key "
-                f"{v.duplicate!r} is given more than once in one object; keep one (a JSON "
-                "reader would silently use only the last)."
-            )
-        if isinstance(v, dict):
-            stack.extend(((*path, k), x) for k, x in reversed(list(v.items())))
-        elif isinstance(v, list):
-            stack.extend(((*path, i), x) for i, x in reversed(list(enumerate(v))))
-    check_finite_doc(doc, source=source)
-    return doc
-
 
 # -------------------------------------------------------------------------- numbers
 
@@ -655,9 +517,9 @@ __all__ = [
     "MAX_EXACT_EDGES",
     "MAX_JSON_DEPTH", "MAX_SPECTRUM_SAMPLES", "MAX_SPIDERS", "MAX_VERTICES",
     "MAX_WAVELENGTHS", "MEMORY_LIMIT_FORM", "MIN_CROP", "check_array",
-    "check_camera_scene", "check_crop", "check_edge_count", "check_finite_doc",
+    "check_camera_scene", "check_crop", "check_edge_count",
     "check_memory", "check_number", "check_obstruction", "check_polygon_vertices",
     "check_psf_inputs", "check_pupil", "check_pupil_cost", "check_shape",
-    "check_wavelength_count", "fmt_bytes", "json_depth", "loads_strict",
+    "check_wavelength_count", "fmt_bytes",
     "memory_budget", "memory_limit_from_env", "parse_memory_limit", "refuse_nonfinite_traced",
 ]

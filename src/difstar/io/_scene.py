@@ -12,13 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .._validate import (
-    InputError,
-    check_camera_scene,
+from .._validate import InputError, check_camera_scene, check_polygon_vertices
+from ._json import (  # noqa: F401
+    SceneError,
+    _short,
     check_finite_doc,
-    check_polygon_vertices,
+    load_schema,
+    read_json,
+    schema_path,
+    validate,
 )
-from ._json import SceneError, _short, load_schema, read_json, schema_path, validate  # noqa: F401
 
 SCHEMA_DIR_ENV = "DIFSTAR_SCHEMAS"
 
