@@ -117,8 +117,19 @@ def _examples():
         yield f"difstar example {name}", example_document(name)
 
 
+def _read(p: Path):
+    """A JSON file as difstar reads it: a manifest that ``extends`` another, merged."""
+    doc = json.loads(p.read_text())
+    if isinstance(doc, dict) and "extends" in doc:
+        from difstar.fitting._manifest import PATH_KEYS
+        from difstar.io._json import read_json_extends
+
+        doc, _ = read_json_extends(p, path_keys=PATH_KEYS)
+    return doc
+
+
 def _documents():
-    out = [(str(p.relative_to(REPO)), json.loads(p.read_text())) for p in _json_files()]
+    out = [(str(p.relative_to(REPO)), _read(p)) for p in _json_files()]
     return out + list(_markdown_blocks()) + list(_examples())
 
 

@@ -360,6 +360,11 @@ def _stage_field(e: FitInputError, src: str) -> FitInputError:
         return FitInputError(f"{src}: field {e.field}: {e.detail}")
     return FitInputError(f"{src}: field stages: {e}")
 
+#: the manifest's fields that name files (a base's, under ``extends``, are read from the
+#: base's folder)
+PATH_KEYS = frozenset({"path", "sigma", "image"})
+
+
 def load_manifest(path):
     """(model, data, options) from an image-fit manifest (JSON; see
     data_schemas/image_fit_manifest.schema.json). ``data`` is a FitData, or a list of
@@ -369,7 +374,10 @@ def load_manifest(path):
     manifest, and ``inputs``: every file the manifest made difstar read (each capture's
     image and σ map, the source image).
 
-    The manifest is read strictly (no NaN or Infinity, no key given twice), checked
+    ``"extends": "BASE.json"`` makes the manifest a variant: its keys are laid over the
+    base's (objects merged key by key, anything else replaced; the base's files named
+    from its own folder; chains of up to 8). The manifest is read strictly (no NaN or
+    Infinity, no key given twice), checked
     against its schema, then against its data and model (an ROI inside the image, some
     signal, the obstruction inside the pupil, the parameters the model has, every stage
     with a window that holds pixels and something free): every mistake raises
@@ -377,19 +385,19 @@ def load_manifest(path):
     naming the manifest and the field, before anything is computed."""
     from pathlib import Path
 
-    from ..io._json import SceneError, read_json, validate
+    from ..io._json import SceneError, read_json_extends, validate
 
     path = Path(path)
     src = str(path)
     try:  # one kind of error for a manifest's every mistake (the command line's prefix)
-        man = read_json(path, what="manifest")
+        man, chain = read_json_extends(path, what="manifest", path_keys=PATH_KEYS)
         _manifest_shape(man, src)
         validate(man, "image_fit_manifest", source=src)
     except SceneError as e:
         raise FitInputError(str(e)) from None
     several = isinstance(man["data"], list)
     caps = man["data"] if several else [man["data"]]
-    inputs: list[str] = []
+    inputs: list[str] = [str(c) for c in chain[1:]]  # the manifests it extends
     fds = [_load_capture(d, f"data/{i}" if several else "data", path.parent, source=src,
                          inputs=inputs)
            for i, d in enumerate(caps)]

@@ -267,3 +267,79 @@ def read_json(path: str | Path, *, what: str = "file") -> Any:
         return loads_strict(text, source=str(p))
     except InputError as exc:
         raise SceneError(str(exc)) from None
+
+
+#: how many manifests a chain of ``extends`` may hold (a variant of a variant of ...)
+MAX_EXTENDS = 8
+
+
+def overlay(base: Any, over: Any) -> Any:
+    """``over`` laid on ``base``: objects merge key by key (recursively); anything else in
+    ``over`` (a number, a string, a list, null) replaces what ``base`` has there."""
+    if isinstance(base, dict) and isinstance(over, dict):
+        out = dict(base)
+        for k, v in over.items():
+            out[k] = overlay(base[k], v) if k in base else v
+        return out
+    return over
+
+
+def _rebase(doc: Any, folder: Path, path_keys: frozenset) -> Any:
+    """``doc`` with each relative file name under a key of ``path_keys`` made absolute
+    from ``folder`` where that file exists: a base manifest's files keep their meaning
+    in the manifest that extends it, wherever that one lies."""
+    if isinstance(doc, dict):
+        out = {}
+        for k, v in doc.items():
+            if k in path_keys and isinstance(v, str) and not Path(v).is_absolute() \
+                    and (folder / v).exists():
+                out[k] = str((folder / v).resolve())
+            else:
+                out[k] = _rebase(v, folder, path_keys)
+        return out
+    if isinstance(doc, list):
+        return [_rebase(v, folder, path_keys) for v in doc]
+    return doc
+
+
+def read_json_extends(path: str | Path, *, what: str = "manifest",
+                      path_keys: frozenset = frozenset()) -> tuple[Any, list[Path]]:
+    """A JSON object read strictly, with its ``"extends": "BASE.json"`` resolved: the
+    base (relative to this file's folder; itself possibly extending another, up to
+    :data:`MAX_EXTENDS` files, no cycle) is read, its relative file names under
+    ``path_keys`` made absolute from its own folder, and this file's keys laid over it
+    (:func:`overlay`). Returns (the merged document without ``extends``, every file read:
+    this one first). Errors name the file and the field ``extends``."""
+    p = Path(path)
+    chain = [p]
+    doc = read_json(p, what=what)
+    layers = [doc]
+    while isinstance(doc, dict) and "extends" in doc:
+        ref = doc["extends"]
+        here = chain[-1]
+        if not isinstance(ref, str) or not ref.strip():
+            raise SceneError(f"{here}: field extends: {ref!r} is not a file name; give the "
+                             "path of the manifest this one varies (relative to its folder).")
+        base = Path(ref) if Path(ref).is_absolute() else here.parent / ref
+        if any(base.resolve() == c.resolve() for c in chain if c.exists()):
+            names = " → ".join(str(c) for c in [*chain, base])
+            raise SceneError(f"{here}: field extends: a cycle ({names}); a manifest cannot "
+                             "extend itself.")
+        if len(chain) >= MAX_EXTENDS:
+            raise SceneError(f"{here}: field extends: more than {MAX_EXTENDS} manifests in "
+                             "one chain; extend the base directly.")
+        if not base.is_file():
+            raise SceneError(f"{here}: field extends: {base} does not exist or is not a file "
+                             "(a path relative to this manifest's folder, or absolute).")
+        doc = read_json(base, what=what)
+        if not isinstance(doc, dict):
+            raise SceneError(f"{base}: a manifest holds a JSON object; this one, which "
+                             f"{here} extends, does not.")
+        chain.append(base)
+        layers.append(_rebase(doc, base.parent, path_keys))
+    merged = layers[-1]
+    for layer in reversed(layers[:-1]):
+        merged = overlay(merged, layer)
+    if isinstance(merged, dict):
+        merged = {k: v for k, v in merged.items() if k != "extends"}
+    return merged, chain
