@@ -144,3 +144,21 @@ def test_truth_block_for_captures_made_elsewhere():
     d = copy.deepcopy(BASE)
     d["truth"] = {"values": {"circumradius": [1.0, 2.0]}}
     _err(d, r"field truth/values/circumradius")
+
+
+def test_a_raw_manifest_extends_another_and_keeps_its_captures(tmp_path):
+    """``"extends"`` in a RAW-fit manifest: a variant elsewhere changes a few keys, its
+    captures are still the base's files (named from the base's folder, even those not
+    yet written), and the base is one of its inputs."""
+    base = Path(__file__).resolve().parents[1] / "fit" / "curved-iris-raw" / "manifest.json"
+    variant = tmp_path / "elsewhere" / "v.json"
+    variant.parent.mkdir()
+    variant.write_text(json.dumps({"extends": str(base), "name": "fewer steps",
+                                   "solver": {"max_steps": 5}}))
+    man = load_manifest(variant)
+    ref = load_manifest(base)
+    assert man.name == "fewer steps" and man.solver["max_steps"] == 5
+    assert man.solver["method"] == ref.solver["method"]  # objects merge key by key
+    assert [c.path.resolve() for c in man.captures] == [c.path.resolve() for c in ref.captures]
+    assert all(c.path.is_file() for c in man.captures)
+    assert man.bases == (base,) and ref.bases == ()

@@ -174,7 +174,7 @@ def _cmd_synth(a) -> int:
         raise SceneError(f"{man.path}: field captures: synthetic captures need exposure_time "
                          f"(missing for {missing_t})")
     out = Path(a.out) if a.out else folders.pop()
-    check_output_free(out, overwrite=a.overwrite, inputs=[man.path],
+    check_output_free(out, overwrite=a.overwrite, inputs=[man.path, *man.bases],
                       replaceable=synth_replaceable(man))
     synthesize(man, out, overwrite=a.overwrite)
     _log(f"difstar synth: wrote {len(man.captures)} DNG files to {out}/")
@@ -199,7 +199,7 @@ def _cmd_fit(a) -> int:
     man = load_manifest(a.manifest)
     if a.max_steps is not None:
         man.solver["max_steps"] = a.max_steps
-    inputs = [man.path] + [c.path for c in man.captures]
+    inputs = [man.path, *man.bases] + [c.path for c in man.captures]
     if a.recovery_study:
         if man.truth is None:
             raise SceneError(f"{man.path}: field truth: --recovery-study needs the true values "

@@ -284,30 +284,34 @@ def overlay(base: Any, over: Any) -> Any:
     return over
 
 
-def _rebase(doc: Any, folder: Path, path_keys: frozenset) -> Any:
+def _rebase(doc: Any, folder: Path, path_keys: frozenset, anchored: bool) -> Any:
     """``doc`` with each relative file name under a key of ``path_keys`` made absolute
-    from ``folder`` where that file exists: a base manifest's files keep their meaning
-    in the manifest that extends it, wherever that one lies."""
+    from ``folder`` (``anchored``: always; else where that file exists, the reader
+    looking elsewhere too): a base manifest's files keep their meaning in the manifest
+    that extends it, wherever that one lies."""
     if isinstance(doc, dict):
         out = {}
         for k, v in doc.items():
             if k in path_keys and isinstance(v, str) and not Path(v).is_absolute() \
-                    and (folder / v).exists():
+                    and (anchored or (folder / v).exists()):
                 out[k] = str((folder / v).resolve())
             else:
-                out[k] = _rebase(v, folder, path_keys)
+                out[k] = _rebase(v, folder, path_keys, anchored)
         return out
     if isinstance(doc, list):
-        return [_rebase(v, folder, path_keys) for v in doc]
+        return [_rebase(v, folder, path_keys, anchored) for v in doc]
     return doc
 
 
 def read_json_extends(path: str | Path, *, what: str = "manifest",
-                      path_keys: frozenset = frozenset()) -> tuple[Any, list[Path]]:
+                      path_keys: frozenset = frozenset(),
+                      anchored: bool = False) -> tuple[Any, list[Path]]:
     """A JSON object read strictly, with its ``"extends": "BASE.json"`` resolved: the
     base (relative to this file's folder; itself possibly extending another, up to
     :data:`MAX_EXTENDS` files, no cycle) is read, its relative file names under
-    ``path_keys`` made absolute from its own folder, and this file's keys laid over it
+    ``path_keys`` made absolute from its own folder (``anchored``: whether or not the
+    file exists yet, for files named only from the manifest's folder), and this file's
+    keys laid over it
     (:func:`overlay`). Returns (the merged document without ``extends``, every file read:
     this one first). Errors name the file and the field ``extends``."""
     p = Path(path)
@@ -336,7 +340,7 @@ def read_json_extends(path: str | Path, *, what: str = "manifest",
             raise SceneError(f"{base}: a manifest holds a JSON object; this one, which "
                              f"{here} extends, does not.")
         chain.append(base)
-        layers.append(_rebase(doc, base.parent, path_keys))
+        layers.append(_rebase(doc, base.parent, path_keys, anchored))
     merged = layers[-1]
     for layer in reversed(layers[:-1]):
         merged = overlay(merged, layer)

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._scene import SceneError, read_json, validate
+from ._json import read_json_extends
+from ._scene import SceneError, validate
 
 DEFAULT_WAVELENGTHS = (600e-9, 530e-9, 450e-9)
 
@@ -43,6 +44,8 @@ class Manifest:
     #: the true values known for some parameters (all of them for ``synthetic``
     #: manifests; some, from the ``truth`` block, for captures made outside difstar)
     truth: dict | None = None
+    #: the manifests this one extends (``"extends"``), nearest first: inputs too
+    bases: tuple[Path, ...] = ()
 
     @property
     def folder(self) -> Path:
@@ -54,9 +57,13 @@ class Manifest:
 
 
 def load_manifest(path: str | Path) -> Manifest:
+    """The RAW-fit manifest at ``path``, read strictly, its ``"extends"`` resolved (the
+    base's capture files named from the base's folder; :func:`read_json_extends`),
+    checked against its schema and resolved."""
     path = Path(path)
-    doc = read_json(path, what="fit manifest")
-    return manifest_from_dict(doc, path=path)
+    doc, chain = read_json_extends(path, what="fit manifest", path_keys=frozenset({"file"}),
+                                   anchored=True)
+    return dataclasses.replace(manifest_from_dict(doc, path=path), bases=tuple(chain[1:]))
 
 
 def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifest:
