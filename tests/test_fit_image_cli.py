@@ -115,7 +115,7 @@ def test_fit_image_cli_bracket_end_to_end(bracket, capsys):
 
 
 def test_console_spike_angles_name_a_missing_peak():
-    from difstar._fit_image_cli import _degrees
+    from difstar.fitting._run import _degrees
 
     assert _degrees([1.6770, None, 150.4648]) == "1.68°, no peak, 150.46°"
 
@@ -162,7 +162,7 @@ def test_fainter_copies_end_to_end(tmp_path, capsys):
     """--fainter 4 on one capture with noise in electrons (gain 50): the main fit and the
     copy 4 times fainter both recover the generator's centre, and the copy its flux / 4;
     fit_fainter_copy (what fit/jwst-nircam/faint_copy.py runs) fits the same copy."""
-    from difstar._fit_image_cli import fit_fainter_copy
+    from difstar.fitting._run import fit_fainter_copy
 
     lin = _numpy_star((31, 31), **dict(TRUE, background=0.0))
     gain, read = 50.0, 0.05

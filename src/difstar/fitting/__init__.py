@@ -42,8 +42,6 @@ modules, in the order they build on one another: ``_params`` (:class:`Param`), `
 stages), ``_procedure`` (:func:`fit`), ``_manifest`` (:func:`load_manifest`).
 """
 
-from .._fit_image_cli import fit_fainter_copy as fit_fainter_copy
-from .._fit_image_cli import run as run_fit_image
 from ._analysis import chi2_at as chi2_at
 from ._analysis import chi2_slice as chi2_slice
 from ._analysis import spike_angles as spike_angles
@@ -64,6 +62,8 @@ from ._parts import iris_pupil as iris_pupil
 from ._parts import jwst_pupil as jwst_pupil
 from ._parts import obstructed_circle_pupil as obstructed_circle_pupil
 from ._procedure import fit as fit
+from ._run import fit_fainter_copy as fit_fainter_copy
+from ._run import run as run_fit_image
 from ._solve import FitResult as FitResult
 from ._solve import model_images as model_images
 from ._solve import noise_limited_errors as noise_limited_errors
