@@ -249,7 +249,8 @@ def test_batch_uses_the_same_parser(monkeypatch):
     from difstar._batch import device_memory
 
     if (jax.devices()[0].memory_stats() or {}).get("bytes_limit"):
-        pytest.skip("the device reports its own memory")
+        pytest.skip("this device (a GPU) reports its own memory limit, which device_memory "
+                    "uses instead of DIFSTAR_MEMORY_LIMIT: the parser is tested on CPU hosts")
     monkeypatch.setenv("DIFSTAR_MEMORY_LIMIT", "8G")
     assert device_memory() == 8 * 2**30 // jax.local_device_count()
 

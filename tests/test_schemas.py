@@ -118,13 +118,16 @@ def _examples():
 
 
 def _read(p: Path):
-    """A JSON file as difstar reads it: a manifest that ``extends`` another, merged."""
+    """A JSON file as difstar reads it: a manifest that ``extends`` another, merged by
+    its own kind's reader (the kind known once merged)."""
     doc = json.loads(p.read_text())
     if isinstance(doc, dict) and "extends" in doc:
-        from difstar.fitting._manifest import PATH_KEYS
-        from difstar.io._json import read_json_extends
+        from difstar.fitting._manifest import manifest_document as image_document
+        from difstar.io._manifest import manifest_document as raw_document
 
-        doc, _ = read_json_extends(p, path_keys=PATH_KEYS)
+        doc, _ = image_document(p)
+        if _kind(doc) == "fit_manifest":
+            doc, _ = raw_document(p)
     return doc
 
 

@@ -365,6 +365,14 @@ def _stage_field(e: FitInputError, src: str) -> FitInputError:
 PATH_KEYS = frozenset({"path", "sigma", "image"})
 
 
+def manifest_document(path):
+    """(the image-fit manifest's JSON as :func:`load_manifest` reads it: strict, its
+    ``extends`` merged; the files read, this one first), before any check."""
+    from ..io._json import read_json_extends
+
+    return read_json_extends(path, what="manifest", path_keys=PATH_KEYS)
+
+
 def load_manifest(path):
     """(model, data, options) from an image-fit manifest (JSON; see
     data_schemas/image_fit_manifest.schema.json). ``data`` is a FitData, or a list of
@@ -385,12 +393,12 @@ def load_manifest(path):
     naming the manifest and the field, before anything is computed."""
     from pathlib import Path
 
-    from ..io._json import SceneError, read_json_extends, validate
+    from ..io._json import SceneError, validate
 
     path = Path(path)
     src = str(path)
     try:  # one kind of error for a manifest's every mistake (the command line's prefix)
-        man, chain = read_json_extends(path, what="manifest", path_keys=PATH_KEYS)
+        man, chain = manifest_document(path)
         _manifest_shape(man, src)
         validate(man, "image_fit_manifest", source=src)
     except SceneError as e:

@@ -311,8 +311,7 @@ def read_json_extends(path: str | Path, *, what: str = "manifest",
     :data:`MAX_EXTENDS` files, no cycle) is read, its relative file names under
     ``path_keys`` made absolute from its own folder (``anchored``: whether or not the
     file exists yet, for files named only from the manifest's folder), and this file's
-    keys laid over it
-    (:func:`overlay`). Returns (the merged document without ``extends``, every file read:
+    keys laid over it (:func:`overlay`). Returns (the merged document without ``extends``, every file read:
     this one first). Errors name the file and the field ``extends``."""
     p = Path(path)
     chain = [p]

@@ -56,13 +56,19 @@ class Manifest:
         return self.doc.get("name", self.path.parent.name)
 
 
+def manifest_document(path: str | Path) -> tuple[dict, list[Path]]:
+    """(the RAW-fit manifest's JSON as :func:`load_manifest` reads it: strict, its
+    ``"extends"`` merged, the base's capture files named from the base's folder; the
+    files read, this one first), before any check."""
+    return read_json_extends(path, what="fit manifest", path_keys=frozenset({"file"}),
+                             anchored=True)
+
+
 def load_manifest(path: str | Path) -> Manifest:
-    """The RAW-fit manifest at ``path``, read strictly, its ``"extends"`` resolved (the
-    base's capture files named from the base's folder; :func:`read_json_extends`),
-    checked against its schema and resolved."""
+    """The RAW-fit manifest at ``path`` (:func:`manifest_document`), checked against its
+    schema and resolved."""
     path = Path(path)
-    doc, chain = read_json_extends(path, what="fit manifest", path_keys=frozenset({"file"}),
-                                   anchored=True)
+    doc, chain = manifest_document(path)
     return dataclasses.replace(manifest_from_dict(doc, path=path), bases=tuple(chain[1:]))
 
 
