@@ -1,5 +1,5 @@
 """Design optimisers side by side: today's Adam (``optax.adam(0.1)`` on the
-sigmoid-unconstrained values of the Box) against bound-constrained L-BFGS-B
+sigmoid-unconstrained values of the bounds) against bound-constrained L-BFGS-B
 (``jaxopt.LBFGSB`` in the bounded parameters themselves), on three design problems of
 the worked study (9 blades, f/8, 550 nm, the ``--quick`` grids: 64² focused PSF):
 
@@ -40,7 +40,8 @@ from difstar.design_study import study_objective, study_setup, study_start
 
 
 def problems(family, setup, opts):
-    """(name, objective, start, Box, known answer or None) of the three problems."""
+    """(name, objective, start, bounds (lower, upper), known answer or None) of the
+    three problems."""
     spikes = study_objective(family, setup, opts)
     box_c = family.bounds(curvature=(0.0, 0.6))
     box_v = family.bounds(curvature=(0.0, 0.6), radial=0.015, angular=0.015)
@@ -64,14 +65,14 @@ def problems(family, setup, opts):
 
 def within_bounds(box, params) -> bool:
     return all(bool(jnp.all((lo <= p) & (p <= hi)))
-               for lo, hi, p in zip(jax.tree.leaves(box.lower), jax.tree.leaves(box.upper),
+               for lo, hi, p in zip(jax.tree.leaves(box[0]), jax.tree.leaves(box[1]),
                                     jax.tree.leaves(params)))
 
 
 def on_bound(box, params) -> int:
     """Free parameters (a range of non-zero width) exactly on a bound."""
     n = 0
-    for lo, hi, p in zip(jax.tree.leaves(box.lower), jax.tree.leaves(box.upper),
+    for lo, hi, p in zip(jax.tree.leaves(box[0]), jax.tree.leaves(box[1]),
                          jax.tree.leaves(params)):
         free = lo < hi
         n += int(jnp.sum(free & ((p == lo) | (p == hi))))

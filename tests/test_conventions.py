@@ -223,7 +223,7 @@ def test_raw_fit_source_offset_is_row_col_pixels_rows_down():
     truth = {"circumradius": 51.5e-3 / 44, "rotation": 0.0, "source_radius": 0.2e-3,
              "source_offset/c": np.array([6.0, -4.0]), "phi0": np.full(3, 0.01),
              "toe": np.full(3, 0.02), "knee": np.full(3, 40.0), "defocus/c": 0.0}
-    params = tuple(F.ParamSpec(k, F.param_shape(k, 7), False, v) for k, v in truth.items())
+    params = {k: F.Param(np.broadcast_to(v, F.param_shape(k, 7))) for k, v in truth.items()}
     grid = difstar.Grid(n=96, crop=(48, 48), use_defocus=False, raw_only=True)
     model = F.FitModel(cc, (F.ConfigSpec("c", 1.0, 1.0, grid),),
                        (F.CaptureSpec("a", "c", 0.1, (0.0, 0.0)),), params)

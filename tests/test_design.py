@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import difstar
 from difstar._design import IrisFamily, PSFSetup, convexity_bound, design
 from difstar._design_measures import (
     angular_profile,
@@ -65,14 +66,16 @@ def test_fixed_area_reparametrisation_is_exact():
     assert abs(float(g)) < 1e-12 * AREA
 
 
-def test_box_roundtrip_and_fixed_leaves():
-    box = FAM.bounds(curvature=(0.0, 0.6), radial=0.01)
+def test_bounds_roundtrip_and_fixed_leaves():
+    """The one bound map (difstar.Param) on a design's PyTree: a round trip returns the
+    value; a zero-width range fixes its leaves (value and gradient)."""
     p = FAM.params(0.3, radial=np.linspace(-0.005, 0.005, 9))
-    q = box.constrain(box.unconstrain(p))
+    box = difstar.Param(p, True, FAM.bounds(curvature=(0.0, 0.6), radial=0.01))
+    q = box.from_unconstrained(box.to_unconstrained())
     np.testing.assert_allclose(q.curvature, 0.3, rtol=1e-12)
     np.testing.assert_allclose(q.radial, p.radial, atol=1e-15)
     np.testing.assert_array_equal(q.angular, 0.0)  # fixed: zero-width range
-    g = jax.grad(lambda u: box.constrain(u).angular.sum())(box.unconstrain(p))
+    g = jax.grad(lambda u: box.from_unconstrained(u).angular.sum())(box.to_unconstrained())
     np.testing.assert_array_equal(g.angular, 0.0)
 
 
@@ -157,7 +160,7 @@ FAM5 = IrisFamily(5, 1.0)
 
 def _within(box, params) -> bool:
     return all(bool(np.all((np.asarray(lo) <= np.asarray(p)) & (np.asarray(p) <= np.asarray(hi))))
-               for lo, hi, p in zip(jax.tree.leaves(box.lower), jax.tree.leaves(box.upper),
+               for lo, hi, p in zip(jax.tree.leaves(box[0]), jax.tree.leaves(box[1]),
                                     jax.tree.leaves(params)))
 
 
@@ -175,7 +178,7 @@ def test_lbfgsb_reaches_a_bounded_quadratic_optimum_exactly_on_its_bounds():
     start = FAM5.params(0.1, radial=0.004, angular=-0.004)
     start_copy = jax.tree.map(np.array, start)
     res = design(obj, start, constraints=box, optimiser="lbfgsb", steps=40)
-    want = jax.tree.map(jnp.clip, target, box.lower, box.upper)
+    want = jax.tree.map(jnp.clip, target, *box)
     for got, w in zip(jax.tree.leaves(res.best_params), jax.tree.leaves(want)):
         np.testing.assert_allclose(got, w, atol=1e-9)
     # the active bounds are hit exactly (a sigmoid map can only approach them) and every
@@ -207,7 +210,7 @@ def test_lbfgsb_agrees_with_scipy_on_a_coupled_bounded_problem():
     def flat(p):
         return jnp.concatenate([p.curvature[None], p.radial, p.angular])
 
-    lo0, span = flat(box.lower), flat(box.upper) - flat(box.lower)
+    lo0, span = flat(box[0]), flat(box[1]) - flat(box[0])
 
     def f(x):
         d = (x - lo0) / span - centre
@@ -215,7 +218,7 @@ def test_lbfgsb_agrees_with_scipy_on_a_coupled_bounded_problem():
 
     res = design(lambda p: f(flat(p)), FAM5.params(0.2), constraints=box,
                  optimiser="lbfgsb", steps=200)
-    lo, hi = np.asarray(flat(box.lower)), np.asarray(flat(box.upper))
+    lo, hi = np.asarray(flat(box[0])), np.asarray(flat(box[1]))
     ref = minimize(lambda x: float(f(jnp.asarray(x))), np.asarray(flat(FAM5.params(0.2))),
                    jac=lambda x: np.asarray(jax.grad(f)(jnp.asarray(x))), method="L-BFGS-B",
                    bounds=list(zip(lo, hi)), options={"ftol": 1e-15, "gtol": 1e-12})
@@ -294,7 +297,7 @@ def test_bad_optimiser_and_constraints_are_refused_by_name():
             return p
 
     with pytest.raises(InputError, match=r"constraints: L-BFGS-B needs the bounds "
-                       r"themselves, a Box; got a Reparam"):
+                       r"themselves, \(lower, upper\); got a Reparam"):
         design(obj, FAM5.params(0.1), constraints=Reparam(), optimiser="lbfgsb", steps=1)
     with pytest.raises(InputError, match=r"LBFGSB.history"):
         LBFGSB(history=0)

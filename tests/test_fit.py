@@ -31,20 +31,16 @@ FREE = {
 }
 
 
-def _model(free=FREE, extra=()):
-    params = []
+def _model(free=FREE, extra=None):
+    params = {}
     for name, v in TRUTH.items():
-        shape = F.param_shape(name, 7)
-        if name in free:
-            lo, hi = free[name]
-            params.append(F.ParamSpec(name, shape, True, v, lo, hi))
-        else:
-            params.append(F.ParamSpec(name, shape, False, v))
-    params += list(extra)
+        v = np.broadcast_to(np.asarray(v, float), F.param_shape(name, 7))
+        params[name] = F.Param(v, True, free[name]) if name in free else F.Param(v)
+    params |= extra or {}
     grid = difstar.Grid(n=96, crop=(64, 64), use_defocus=True, raw_only=True)
     cfg = F.ConfigSpec("c", 1.0, 1.0, grid)
     caps = (F.CaptureSpec("a", "c", 0.1, (0.0, 0.0)), F.CaptureSpec("b", "c", 1.0, (0.0, 0.0)))
-    return F.FitModel(CC, (cfg,), caps, tuple(params))
+    return F.FitModel(CC, (cfg,), caps, params)
 
 
 def _data(model, noise_sigma=None, seed=0, fitter=None):
@@ -67,10 +63,11 @@ def _data(model, noise_sigma=None, seed=0, fitter=None):
 def _start(model, rel=0.1, seed=1):
     rng = np.random.default_rng(seed)
     out = {}
-    for p in model.free:
-        scale = np.maximum(np.abs(p.start), 0.5)  if p.name.startswith("source_offset") \
-            else np.abs(p.start)
-        out[p.name] = p.start + rng.uniform(-rel, rel, p.shape) * scale
+    for name in model.free:
+        p = model.params[name]
+        scale = np.maximum(np.abs(p.value), 0.5) if name.startswith("source_offset") \
+            else np.abs(p.value)
+        out[name] = p.value + rng.uniform(-rel, rel, p.shape) * scale
     return F.to_unconstrained(model, out)
 
 
@@ -86,11 +83,13 @@ def test_transform_roundtrip_and_bounds():
         assert np.all(np.asarray(x[name]) <= hi) and np.all(np.asarray(x[name]) >= lo)
 
 
-def test_param_spec_errors():
-    with pytest.raises(ValueError, match="needs bounds"):
-        F.ParamSpec("phi0", (3,), True, 0.1)
-    with pytest.raises(ValueError, match="strictly inside"):
-        F.ParamSpec("phi0", (3,), True, 0.5, 0.0, 0.3)
+def test_param_errors():
+    with pytest.raises(ValueError, match="phi0: a free parameter of a RAW fit needs bounds"):
+        _model(extra={"phi0": F.Param(np.full(3, 0.01), True)})
+    with pytest.raises(ValueError, match="phi0: shape"):
+        _model(extra={"phi0": F.Param(0.01)})
+    with pytest.raises(ValueError, match="outside its bounds"):
+        F.Param(np.full(3, 0.5), True, (0.0, 0.3))
     with pytest.raises(ValueError, match="unknown fit parameter"):
         F.param_shape("aperture", 7)
 
@@ -107,8 +106,8 @@ def test_wrap_rotation_and_response_error():
 
 
 def test_gradients_finite_including_vertex_deviations():
-    extra = (F.ParamSpec("vertex_radial", (7,), True, np.zeros(7), -0.1, 0.1),
-             F.ParamSpec("vertex_angular", (7,), True, np.zeros(7), -0.1, 0.1))
+    extra = {"vertex_radial": F.Param(np.zeros(7), True, (-0.1, 0.1)),
+             "vertex_angular": F.Param(np.zeros(7), True, (-0.1, 0.1))}
     model = _model(extra=extra)
     fitter, data = _data(model)
     args = F.make_args(model, data)
@@ -240,7 +239,8 @@ def test_response_curve_restarts_leave_a_shallow_basin():
     free = dict(FREE, knee=(5.0, 200.0))
     model = _model(free)
     fitter, data = _data(model)
-    stuck = {p.name: p.start for p in model.free} | {"knee": TRUTH["knee"] * [1.0, 1.0, 0.5]}
+    stuck = {k: model.params[k].value for k in model.free} | {
+        "knee": TRUTH["knee"] * [1.0, 1.0, 0.5]}
     u0 = F.to_unconstrained(model, stuck)
     args = F.make_args(model, data, u0)
     loss0 = fitter.loss(u0, args)
@@ -340,8 +340,8 @@ def test_curved_iris_and_zernike_parameters_move_the_model_as_finite_differences
     carries a Zernike wavefront; the Jacobian's columns of both equal central finite
     differences of the residuals (and are not zero)."""
     cc = F.CameraConstants(**{**CC.__dict__, "zernike_radius": R})
-    extra = (F.ParamSpec("curvature", (), True, 0.4, -0.2, 1.0),
-             F.ParamSpec("z11", (), True, 60.0, -200.0, 200.0))  # nm RMS
+    extra = {"curvature": F.Param(0.4, True, (-0.2, 1.0)),
+             "z11": F.Param(60.0, True, (-200.0, 200.0))}  # nm RMS
     model = _model(extra=extra)
     model = F.FitModel(cc, model.configs, model.captures, model.params)
     x = F.from_unconstrained(model, F.to_unconstrained(model))
@@ -360,9 +360,9 @@ def test_curved_iris_and_zernike_parameters_move_the_model_as_finite_differences
     u = F.to_unconstrained(model)
     jac = jax.jacfwd(lambda v: jnp.concatenate([r.ravel() for r in
                                                 jax.tree_util.tree_leaves(fn(v, args))]))(u)
-    names = [p.name for p in model.free]
+    names = list(model.free)
     for name in ("curvature", "z11"):
-        i = sum(p.size for p in model.free[: names.index(name)])
+        i = sum(model.params[k].size for k in names[: names.index(name)])
         e = np.zeros(u.shape)
         e[i] = 1e-4
 

@@ -62,9 +62,6 @@ from ._demosaic import (
     demosaic_malvar2004 as demosaic_malvar2004,
 )
 from ._design import (
-    Box as Box,
-)
-from ._design import (
     DesignResult as DesignResult,
 )
 from ._design import (
@@ -98,12 +95,12 @@ from ._examples import paper_camera as paper_camera
 from ._examples import paper_grid as paper_grid
 from ._examples import paper_sensitivities as paper_sensitivities
 from .fitting._data import FitData as FitData
-from .fitting._params import FitInputError as FitInputError
+from ._param import FitInputError as FitInputError
 from .fitting._solve import FitResult as FitResult
 from .fitting._model import ImageModel as ImageModel
 from .fitting._parts import Light as Light
 from .fitting._data import Noise as Noise
-from .fitting._params import Param as Param
+from ._param import Param as Param
 from .fitting._parts import PupilBuilder as PupilBuilder
 from .fitting._analysis import chi2_at as chi2_at
 from .fitting._analysis import chi2_slice as chi2_slice

@@ -2,9 +2,10 @@
 
 Pure layer under ``difstar fit``: no files, no printing. A :class:`FitModel` holds what
 is fixed (the camera's known values, the configurations' geometry and grids, the
-captures' exposure times and regions) and, for every parameter, whether it is free, its
-start value and its bounds. Free parameters live in one flat unconstrained vector ``u``;
-each element maps to its physical value through ``lo + (hi − lo)·sigmoid(u)``, so every
+captures' exposure times and regions) and, for every parameter, a
+:class:`difstar.Param` (whether it is free, its start and its bounds). Free parameters
+live in one flat unconstrained vector ``u``; each element maps to its physical value by
+the one bound map, ``lo + (hi − lo)·sigmoid(u)`` (:mod:`difstar._param`), so every
 value the solver tries is inside its bounds and all ``u`` are O(1) (the Levenberg–
 Marquardt damping is isotropic in ``u``, so this also balances the parameters' scales).
 
@@ -42,7 +43,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from typing import Any
 
 import equinox as eqx
 import jax
@@ -52,6 +52,7 @@ import numpy as np
 from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, simulate
 from ._image import DiscSource
 from ._lm import LMStepper, SolveResult
+from ._param import Param
 from ._pupil import Polygon, RegularPolygon
 from ._pupil_curved import CurvedIris
 from ._sensor import Response, response_curve
@@ -100,41 +101,6 @@ def param_shape(name: str, n_blades: int) -> tuple[int, ...]:
 
 
 @dataclasses.dataclass(frozen=True)
-class ParamSpec:
-    """One parameter block: ``start`` (and, when free, ``lo`` < ``hi``) broadcast to
-    ``shape``; SI units (see module docstring)."""
-
-    name: str
-    shape: tuple[int, ...]
-    free: bool
-    start: Any  # array-like, broadcast to ``shape`` (stored as np.ndarray)
-    lo: Any = None
-    hi: Any = None
-
-    def __post_init__(self):
-        s = np.broadcast_to(np.asarray(self.start, float), self.shape).copy()
-        object.__setattr__(self, "start", s)
-        if self.free:
-            if self.lo is None or self.hi is None:
-                raise ValueError(f"parameter {self.name}: a free parameter needs bounds")
-            lo = np.broadcast_to(np.asarray(self.lo, float), self.shape).copy()
-            hi = np.broadcast_to(np.asarray(self.hi, float), self.shape).copy()
-            if not np.all(lo < hi):
-                raise ValueError(f"parameter {self.name}: bounds need lo < hi; got {lo}, {hi}")
-            if not np.all((s > lo) & (s < hi)):
-                raise ValueError(
-                    f"parameter {self.name}: start {s.tolist()} must lie strictly inside "
-                    f"the bounds [{lo.tolist()}, {hi.tolist()}]"
-                )
-            object.__setattr__(self, "lo", lo)
-            object.__setattr__(self, "hi", hi)
-
-    @property
-    def size(self) -> int:
-        return int(np.prod(self.shape, dtype=int))
-
-
-@dataclasses.dataclass(frozen=True)
 class CameraConstants:
     """What the fit takes as known. Lengths in metres."""
 
@@ -176,85 +142,74 @@ class FitModel:
     camera: CameraConstants
     configs: tuple[ConfigSpec, ...]
     captures: tuple[CaptureSpec, ...]
-    params: tuple[ParamSpec, ...]
+    params: dict[str, Param]  # name → Param (a number or an array of param_shape)
 
     def __post_init__(self):
-        names = [p.name for p in self.params]
-        if len(set(names)) != len(names):
-            raise ValueError(f"duplicate parameter names in {names}")
-        for p in self.params:
-            want = param_shape(p.name, self.camera.n_blades)
+        object.__setattr__(self, "params", dict(self.params))
+        for name, p in self.params.items():
+            if not isinstance(p, Param):
+                raise ValueError(f"parameter {name}: expected a difstar Param; got "
+                                 f"{type(p).__name__}")
+            want = param_shape(name, self.camera.n_blades)
             if p.shape != want:
-                raise ValueError(f"parameter {p.name}: shape {p.shape}, expected {want}")
+                raise ValueError(f"parameter {name}: shape {p.shape}, expected {want}")
+            if p.free and p.bounds is None:
+                raise ValueError(f"parameter {name}: a free parameter of a RAW fit needs "
+                                 "bounds (lo, hi)")
         cfg = {c.name for c in self.configs}
         for c in self.captures:
             if c.config not in cfg:
                 raise ValueError(f"capture {c.name}: unknown configuration {c.config!r}")
         for req in ("circumradius", "rotation", "source_radius", "phi0", "toe", "knee"):
-            if req not in names:
+            if req not in self.params:
                 raise ValueError(f"fit model lacks parameter {req!r}")
 
     @property
-    def param(self) -> dict[str, ParamSpec]:
-        return {p.name: p for p in self.params}
-
-    @property
-    def free(self) -> tuple[ParamSpec, ...]:
-        return tuple(p for p in self.params if p.free)
+    def free(self) -> tuple[str, ...]:
+        """The free parameters' names, in the order of the solver's vector."""
+        return tuple(k for k, p in self.params.items() if p.free)
 
     @property
     def n_free(self) -> int:
-        return sum(p.size for p in self.free)
+        return sum(self.params[k].size for k in self.free)
 
     def captures_of(self, config: str) -> tuple[CaptureSpec, ...]:
         return tuple(c for c in self.captures if c.config == config)
 
     def with_starts(self, values: dict[str, np.ndarray]) -> FitModel:
         """A copy with new start values (bounds unchanged)."""
-        ps = tuple(
-            dataclasses.replace(p, start=np.asarray(values[p.name], float))
-            if p.name in values else p
-            for p in self.params
-        )
+        ps = {k: p.with_value(np.asarray(values[k], float)) if k in values else p
+              for k, p in self.params.items()}
         return dataclasses.replace(self, params=ps)
 
     def with_values(self, values: dict[str, np.ndarray]) -> FitModel:
         """A copy with every parameter fixed at ``values`` (default: its start)."""
-        ps = tuple(
-            ParamSpec(p.name, p.shape, False, np.asarray(values.get(p.name, p.start), float))
-            for p in self.params
-        )
+        ps = {k: Param(np.asarray(values.get(k, p.value), float))
+              for k, p in self.params.items()}
         return dataclasses.replace(self, params=ps)
 
 
 # ---------------------------------------------------------------- parameter transforms
 
-def _logit(p):
-    return jnp.log(p) - jnp.log1p(-p)
-
-
 def to_unconstrained(model: FitModel, values: dict | None = None) -> jax.Array:
-    """Flat u for the free parameters' ``values`` (default: their starts)."""
-    parts = []
-    for p in model.free:
-        x = np.asarray(p.start if values is None else values[p.name], float)
-        frac = np.clip((x - p.lo) / (p.hi - p.lo), 1e-9, 1 - 1e-9)
-        parts.append(_logit(jnp.asarray(frac.ravel())))
-    return jnp.concatenate(parts) if parts else jnp.zeros((0,))
+    """Flat u for the free parameters' ``values`` (default: their starts), by the one
+    bound map (:class:`difstar._param.Param`)."""
+    parts = [np.ravel(model.params[k].to_unconstrained(None if values is None
+                                                       else np.asarray(values[k], float)))
+             for k in model.free]
+    return jnp.asarray(np.concatenate(parts)) if parts else jnp.zeros((0,))
 
 
 def from_unconstrained(model: FitModel, u: jax.Array) -> dict[str, jax.Array]:
     """Physical values of every parameter (free from ``u``, fixed from their starts)."""
     out = {}
     i = 0
-    for p in model.params:
+    for k, p in model.params.items():
         if p.free:
-            k = p.size
-            v = p.lo.ravel() + (p.hi - p.lo).ravel() * jax.nn.sigmoid(u[i : i + k])
-            out[p.name] = v.reshape(p.shape)
-            i += k
+            out[k] = p.from_unconstrained(u[i : i + p.size].reshape(p.shape))
+            i += p.size
         else:
-            out[p.name] = jnp.asarray(p.start)
+            out[k] = jnp.asarray(p.value)
     return out
 
 
@@ -424,9 +379,9 @@ def make_args(model: FitModel, data: dict, u_ref=None, *, hold: tuple[str, ...] 
     """Solver ``args`` from ``data`` = {config: (ζ_obs, weight)}, holding the parameter
     blocks named in ``hold`` (base names or full names) at ``u_ref``."""
     active = []
-    for p in model.free:
-        on = p.name not in hold and base_name(p.name) not in hold
-        active.append(np.full(p.size, 1.0 if on else 0.0))
+    for k in model.free:
+        on = k not in hold and base_name(k) not in hold
+        active.append(np.full(model.params[k].size, 1.0 if on else 0.0))
     active = jnp.asarray(np.concatenate(active)) if active else jnp.zeros((0,))
     if u_ref is None:
         u_ref = to_unconstrained(model)
@@ -534,15 +489,16 @@ def _covariance(model: FitModel, j: np.ndarray, r: np.ndarray, u):
 
     def xflat(u_):
         x = from_unconstrained(model, u_)
-        return jnp.concatenate([x[p.name].ravel() for p in model.free])
+        return jnp.concatenate([x[k].ravel() for k in model.free])
 
     dxdu = np.asarray(jax.jacfwd(xflat)(u))
     cov = dxdu @ cov_u @ dxdu.T
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     out = {}
     i = 0
-    for p in model.free:
-        out[p.name] = se[i : i + p.size].reshape(p.shape)
+    for k in model.free:
+        p = model.params[k]
+        out[k] = se[i : i + p.size].reshape(p.shape)
         i += p.size
     n_used = int(np.count_nonzero(r))
     w = np.linalg.eigvalsh(jtj) if jtj.size else np.array([1.0])
@@ -578,7 +534,7 @@ def response_error(x_fit: dict, x_true: dict, h_range: tuple[float, float], *, n
 
 
 __all__ = [
-    "ParamSpec", "CameraConstants", "ConfigSpec", "CaptureSpec", "FitModel", "SolveResult",
+    "CameraConstants", "ConfigSpec", "CaptureSpec", "FitModel", "SolveResult",
     "to_unconstrained", "from_unconstrained", "camera_scene", "predict", "noise_sigma",
     "make_residual_fn", "make_args", "weights", "Fitter", "solve", "loss_of", "covariance",
     "wrap_rotation", "response_error", "pupil_of",

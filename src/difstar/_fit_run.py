@@ -51,14 +51,16 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
     import dataclasses
 
     from difstar import Grid
-    from difstar._fit import CaptureSpec, ConfigSpec, FitModel, ParamSpec, camera_scene
+    from difstar._fit import CaptureSpec, ConfigSpec, FitModel, camera_scene
+    from difstar._param import Param
     from difstar._sampling import choose_grid
 
     cc = dataclasses.replace(camera_constants(man), pattern=pattern)
-    params = []
+    params = {}
     for name, p in man.parameters.items():
         start = p["start"] if values is None else values[name]
-        params.append(ParamSpec(name, p["shape"], p["free"], start, p["lo"], p["hi"]))
+        start = np.broadcast_to(np.asarray(start, float), p["shape"])
+        params[name] = Param(start, p["free"], (p["lo"], p["hi"]) if p["free"] else None)
     caps = tuple(
         CaptureSpec(c.name, c.configuration, float(exposure_times[c.name]),
                     tuple(float(v) for v in base_offsets[c.name]))
@@ -70,23 +72,22 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
         crop = tuple(crops[name])
         dummy = ConfigSpec(name, float(cfg["focus_distance"]), float(cfg["object_distance"]),
                            Grid(n=max(crop), crop=crop, raw_only=True))
-        probe = FitModel(cc, (dummy,), tuple(c for c in caps if c.config == name),
-                         tuple(params))
+        probe = FitModel(cc, (dummy,), tuple(c for c in caps if c.config == name), params)
         # the grid must hold the values the solver will try: the starts with 30 % to spare
         # (the bounds would often double the grid, and with it time and memory)
-        x = {p.name: np.asarray(p.start) for p in probe.params}
+        x = {k: np.asarray(p.value) for k, p in probe.params.items()}
         for key in (f"defocus/{name}", "source_radius", "circumradius"):
-            p = probe.param.get(key)
+            p = probe.params.get(key)
             if p is not None and p.free:
-                x[key] = 1.3 * np.abs(p.start) + 0.3 * man.parameters[key]["perturb_scale"]
+                x[key] = 1.3 * np.abs(p.value) + 0.3 * man.parameters[key]["perturb_scale"]
         camera, scene, _, _ = camera_scene(probe, x, name)
         g = choose_grid(camera, scene, crop=crop, padding=pad, raw_only=True,
                         oversample=man.grid.get("oversample"))
-        dz = probe.param.get(f"defocus/{name}")
+        dz = probe.params.get(f"defocus/{name}")
         use_dz = g.use_defocus or (dz is not None and dz.free)
         # windows (FFT path: the pupil's ATF and the sources' image computed only where
         # they are) sized like the grid, plus the source offsets' bounds
-        off = probe.param.get(f"source_offset/{name}")
+        off = probe.params.get(f"source_offset/{name}")
         reach = 0 if off is None or not off.free else int(np.ceil(np.max(np.abs(
             np.concatenate([off.lo, off.hi])))))
         src = g.source_window + 2 * reach if g.source_window else 0
@@ -98,7 +99,7 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
                         raw_only=True, method=g.method, pupil_window=g.pupil_window,
                         source_window=src if src < g.n else 0)
         configs.append(dataclasses.replace(dummy, grid=grid))
-    return FitModel(cc, tuple(configs), caps, tuple(params))
+    return FitModel(cc, tuple(configs), caps, params)
 
 
 def load_captures(man):
@@ -229,7 +230,7 @@ def photometric_start(model, caps, u0):
     from difstar._cfa import bayer_masks_np
     from difstar._fit import from_unconstrained, predict, to_unconstrained
 
-    spec = model.param.get("phi0")
+    spec = model.params.get("phi0")
     if spec is None or not spec.free:
         return u0
     x = from_unconstrained(model, u0)
@@ -250,7 +251,7 @@ def photometric_start(model, caps, u0):
                 den[ch] += np.sum(z[m])
     phi0 = np.where((num > 0) & (den > 0), num / np.maximum(den, 1e-300), x["phi0"])
     phi0 = np.clip(phi0, spec.lo * (1 + 1e-6), spec.hi * (1 - 1e-6))
-    values = {p.name: np.asarray(x[p.name]) for p in model.free} | {"phi0": phi0}
+    values = {k: np.asarray(x[k]) for k in model.free} | {"phi0": phi0}
     return to_unconstrained(model, values)
 
 
@@ -322,7 +323,7 @@ def restart_response_curves(fitter, model, u, args, solver: dict, *, verbose: bo
     best = fitter.loss(u, args)
     tries = []
     for name in RESTARTED:
-        spec = model.param.get(name)
+        spec = model.params.get(name)
         if spec is None or not spec.free:
             continue
         for ch in range(spec.size):
@@ -395,15 +396,15 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
     t_cov = time.perf_counter() - t0
     x = _values(model, u)
     params = {}
-    for p in model.params:
-        d = {"value": x[p.name].tolist(), "free": p.free, "start": p.start.tolist()}
+    for name, p in model.params.items():
+        d = {"value": x[name].tolist(), "free": p.free, "start": np.asarray(p.value).tolist()}
         if p.free:
-            d["stderr"] = se[p.name].tolist()
-            d["bounds"] = [p.lo.tolist(), p.hi.tolist()]
-            at = (np.isclose(x[p.name], p.lo, rtol=1e-4, atol=0)
-                  | np.isclose(x[p.name], p.hi, rtol=1e-4, atol=0))
+            d["stderr"] = se[name].tolist()
+            d["bounds"] = [np.asarray(p.lo).tolist(), np.asarray(p.hi).tolist()]
+            at = (np.isclose(x[name], p.lo, rtol=1e-4, atol=0)
+                  | np.isclose(x[name], p.hi, rtol=1e-4, atol=0))
             d["at_bound"] = bool(np.any(at))
-        params[p.name] = d
+        params[name] = d
     n = model.camera.n_blades
     period = 2 * math.pi / n
     derived = {

@@ -15,12 +15,13 @@ def perturbed_starts(man, model, rng) -> dict:
     known), at least ±20 % of ``perturb_scale``, inside the bounds."""
     truth = man.truth
     out = {}
-    for p in model.free:
-        t = np.asarray(truth.get(p.name, p.start), float)
-        scale = np.maximum(np.abs(t), man.parameters[p.name]["perturb_scale"])
+    for name in model.free:
+        p = model.params[name]
+        t = np.asarray(truth.get(name, p.value), float)
+        scale = np.maximum(np.abs(t), man.parameters[name]["perturb_scale"])
         v = t + rng.uniform(-PERTURB, PERTURB, p.shape) * scale
         span = p.hi - p.lo
-        out[p.name] = np.clip(v, p.lo + 1e-3 * span, p.hi - 1e-3 * span)
+        out[name] = np.clip(v, p.lo + 1e-3 * span, p.hi - 1e-3 * span)
     return out
 
 
@@ -32,7 +33,7 @@ def compare_truth(model, x_fit: dict, truth: dict, h_range, stderr: dict | None 
     errors of the truth with a standard error under 5 % of the true value."""
     n = model.camera.n_blades
     out = {}
-    free = {p.name for p in model.free} & set(truth)
+    free = set(model.free) & set(truth)
     dz_scale = max([abs(float(truth[k])) for k in truth if k.startswith("defocus/")] or [0.0])
     for name in free:
         t, f = np.asarray(truth[name], float), np.asarray(x_fit[name], float)

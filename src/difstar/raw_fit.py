@@ -1,7 +1,8 @@
 """The RAW camera fitter: fit a camera's lens and sensor to RAW captures of a star (the
 ``difstar synth`` / ``difstar fit`` commands use it).
 
-The pure layer (a :class:`FitModel` of named parameters, a :class:`Fitter` running the
+The pure layer (a :class:`FitModel` of named parameters, each a :class:`difstar.Param`
+with an array value of :func:`param_shape`, a :class:`Fitter` running the
 Levenberg–Marquardt stepper on its unconstrained vector) and the manifest boundary
 (:func:`load_manifest`, :func:`prepare`, :func:`observed_data`) that turns a manifest
 and its captures into that model and its data; :func:`fit_manifest` (the whole staged
@@ -14,7 +15,6 @@ from ._fit import CaptureSpec as CaptureSpec
 from ._fit import ConfigSpec as ConfigSpec
 from ._fit import FitModel as FitModel
 from ._fit import Fitter as Fitter
-from ._fit import ParamSpec as ParamSpec
 from ._fit import from_unconstrained as from_unconstrained
 from ._fit import make_args as make_args
 from ._fit import noise_sigma as noise_sigma
@@ -27,10 +27,11 @@ from ._fit_run import fit_manifest as fit_manifest
 from ._fit_run import observed_data as observed_data
 from ._fit_run import prepare as prepare
 from ._fit_run import synthesize as synthesize
+from ._param import Param as Param
 from .io._manifest import load_manifest as load_manifest
 
 __all__ = [
-    "CameraConstants", "CaptureSpec", "ConfigSpec", "FitModel", "Fitter", "ParamSpec",
+    "CameraConstants", "CaptureSpec", "ConfigSpec", "FitModel", "Fitter", "Param",
     "fit_manifest", "from_unconstrained", "load_manifest", "make_args", "noise_sigma",
     "observed_data", "param_shape", "prepare", "recovery_study", "study_table", "synthesize",
     "to_unconstrained", "weights",
