@@ -25,7 +25,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from difstar.cli import example_document, main
+from difstar.cli import main
+from difstar.cli._main import example_document
 from difstar.io._output import MARKER
 from difstar.io._scene import SceneError
 

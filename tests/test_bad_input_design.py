@@ -27,8 +27,8 @@ SWEEP = {"designs": [{"name": "straight", "curvature": 0.0},
 @pytest.fixture
 def no_compute(monkeypatch):
     """The study and the sweep's measures fail the test if reached."""
-    import difstar._design_cli as cli
     import difstar._design_study as study
+    import difstar.cli._design as cli
 
     def reached(*a, **k):
         raise AssertionError("computing started before the input was refused")
@@ -126,7 +126,7 @@ def test_sweep_files_that_are_not_json_text(work, capsys, no_compute):
 
 
 def test_too_many_designs_are_refused_up_front(work, capsys, no_compute, monkeypatch):
-    import difstar._design_cli as cli
+    import difstar.cli._design as cli
 
     _one_line(refused(["design", "--sweep-curvature", "0", "1", "100001", "--out",
                        work / "out"], capsys, work, "--sweep-curvature N", "<= 100000"))

@@ -9,7 +9,8 @@ import rawpy
 import tifffile
 from PIL import Image
 
-from difstar.cli import example_document, main
+from difstar.cli import main
+from difstar.cli._main import example_document
 from difstar.io._dng import written_by_difstar
 
 

@@ -211,7 +211,7 @@ def test_sweep_schema_accepts_the_example_and_names_the_fields():
 
 
 def test_bad_optimiser_flag_is_refused_before_computing(tmp_path, capsys, monkeypatch):
-    import difstar._design_cli as cli
+    import difstar.cli._design as cli
 
     def reached(*a, **k):
         raise AssertionError("computing started before the input was refused")

@@ -1,4 +1,4 @@
-"""``difstar fit-image`` (difstar._fit_image_cli) end to end on a manifest of two
+"""``difstar fit-image`` (difstar.cli._fit_image) end to end on a manifest of two
 captures (an exposure bracket of a disc source, one shared flux) made by the
 independent NumPy generator of tests/test_fitting.py: the manifest validates against
 its schema, the fit recovers the generator's values, the outputs are written whole,
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from test_fitting import LAM, TRUE, P, _numpy_star
 
-from difstar._fit_image_cli import main
+from difstar.cli._fit_image import main
 from difstar.fitting import ImageModel, Light
 from difstar.fitting._model import parameter_unit
 from difstar.fitting._parts import BUILDERS

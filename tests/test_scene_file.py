@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import difstar
-from difstar import cli
+from difstar.cli import _main as cli
 from difstar.io import _image_files
 from difstar.io._scene import SceneError, scene_from_dict, scene_to_dict
 
@@ -128,7 +128,7 @@ CHILD = textwrap.dedent('''
     sys.path.insert(0, "tests")
     import jax
     from test_scene_file import spectral_doc
-    from difstar import cli
+    from difstar.cli import _main as cli
     from difstar.io import _image_files
 
     got = {}

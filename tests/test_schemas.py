@@ -111,7 +111,7 @@ def _markdown_blocks():
 
 
 def _examples():
-    from difstar.cli import EXAMPLES, example_document
+    from difstar.cli._main import EXAMPLES, example_document
 
     for name in EXAMPLES:
         yield f"difstar example {name}", example_document(name)

@@ -4,7 +4,7 @@ the staged Levenberg–Marquardt solve with knee restarts (:func:`fit_manifest`)
 synthetic captures a manifest's truth makes (:func:`synthesize`).
 
 Outside jit: files are read here and progress goes to stderr; :mod:`difstar._fit` is the
-pure layer. The command line (:mod:`difstar._fit_cli`) only parses, calls and writes.
+pure layer. The command line (:mod:`difstar.cli._fit`) only parses, calls and writes.
 """
 
 from __future__ import annotations

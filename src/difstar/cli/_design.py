@@ -240,8 +240,9 @@ def _cmd_design(a) -> int:
 
 
 def register(subparsers, name: str) -> None:
-    from difstar._cli_args import arg_type as _arg_type
     from difstar._validate import MAX_BLADES
+
+    from ._args import arg_type as _arg_type
 
     p = subparsers.add_parser(
         name, help="aperture design study: spikes vs bokeh for curved iris blades",

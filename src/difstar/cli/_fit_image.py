@@ -1,7 +1,7 @@
 """``difstar fit-image``: the command line of the image fitter (it parses, calls
 :func:`difstar.fitting.run_fit_image` and reports).
 
-    python -m difstar._fit_image_cli fit/jwst-nircam/manifest.json --out fit/jwst-nircam/result
+    python -m difstar.cli._fit_image fit/jwst-nircam/manifest.json --out fit/jwst-nircam/result
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from .fitting._run import run
+from ..fitting._run import run
 
 
 def _add_arguments(ap) -> None:
@@ -73,7 +73,7 @@ def register(sub, name: str) -> None:
 
 
 def _cmd(a) -> int:
-    from .fitting._params import FitInputError
+    from ..fitting._params import FitInputError
 
     try:
         run(a.manifest, a.out, verbose=not a.quiet, max_steps=a.max_steps,
@@ -85,7 +85,7 @@ def _cmd(a) -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m difstar._fit_image_cli",
+    ap = argparse.ArgumentParser(prog="python -m difstar.cli._fit_image",
                                  description="Fit a PSF model to a star image (manifest).")
     _add_arguments(ap)
     a = ap.parse_args(argv)

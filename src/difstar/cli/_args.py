@@ -1,4 +1,4 @@
-"""argparse types shared by difstar's command-line modules: numbers checked by
+"""argparse types shared by the command-line modules (:mod:`difstar.cli`): numbers checked by
 :func:`difstar._validate.check_number`, so the command line refuses what the Python API
 refuses, with the same message (argparse adds the option's name)."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._validate import InputError, check_number
+from .._validate import InputError, check_number
 
 
 def arg_type(name: str, **limits):

@@ -296,9 +296,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     p.set_defaults(func=_cmd_example)
 
-    for name, module in (("synth", "difstar._fit_cli"), ("fit", "difstar._fit_cli"),
-                         ("design", "difstar._design_cli"),
-                         ("fit-image", "difstar._fit_image_cli")):
+    for name, module in (("synth", "difstar.cli._fit"), ("fit", "difstar.cli._fit"),
+                         ("design", "difstar.cli._design"),
+                         ("fit-image", "difstar.cli._fit_image")):
         try:
             mod = __import__(module, fromlist=["register"])
         except ImportError:

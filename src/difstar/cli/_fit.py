@@ -244,7 +244,7 @@ def _print_summary(result: dict) -> None:
 
 
 def register(subparsers, name: str) -> None:
-    from difstar._cli_args import nonnegative_int, positive_int
+    from ._args import nonnegative_int, positive_int
 
     if name == "synth":
         p = subparsers.add_parser("synth", help="write synthetic DNG captures for a fit manifest")
@@ -277,4 +277,4 @@ def register(subparsers, name: str) -> None:
                        "docs/sharding.md")
         p.set_defaults(func=_cmd_fit)
     else:
-        raise ValueError(f"difstar._fit_cli.register: unknown command {name!r}")
+        raise ValueError(f"difstar.cli._fit.register: unknown command {name!r}")
