@@ -182,3 +182,35 @@ def test_version(capsys):
         main(["--version"])
     assert e.value.code == 0
     assert capsys.readouterr().out.strip() == f"difstar {version('difstar')}"
+
+
+def test_fit_takes_either_kind_of_manifest(tmp_path, monkeypatch, capsys):
+    """``difstar fit`` runs the image fitter on an image-fit manifest (extends merged
+    first), with --out defaulting to the manifest's folder/result, and refuses a
+    manifest that says neither or both kinds by naming the fields."""
+    from pathlib import Path
+
+    import difstar.fitting._run as image_run
+    from difstar.io import manifest_kind
+
+    root = Path(__file__).resolve().parents[1]
+    assert manifest_kind(root / "fit" / "spitzer-irac" / "manifest.json") == "image"
+    assert manifest_kind(root / "fit" / "synthetic-paper-camera" / "manifest.json") == "raw"
+    variant = tmp_path / "variant.json"  # a variant that only overlays a field
+    variant.write_text(json.dumps({"extends": str(root / "fit" / "spitzer-irac" /
+                                                  "manifest.json"), "max_steps": 3}))
+    assert manifest_kind(variant) == "image"
+    calls = []
+    monkeypatch.setattr(image_run, "run", lambda *a, **k: calls.append((a, k)))
+    assert main(["fit", str(variant), "--max-steps", "2"]) == 0
+    (path, out), kw = calls[0]
+    assert Path(path) == variant and Path(out) == tmp_path / "result"
+    assert kw["max_steps"] == 2 and kw["overwrite"] is False
+    assert main(["fit", str(variant), "--recovery-study", "3"]) == 2
+    assert "--robustness" in capsys.readouterr().err
+    for doc, word in (({"name": "x"}, "neither"), ({"data": "a.npy", "captures": []}, "both")):
+        bad = tmp_path / f"{word}.json"
+        bad.write_text(json.dumps(doc))
+        assert main(["fit", str(bad)]) == 2
+        err = capsys.readouterr().err
+        assert word in err and "captures" in err and "pupil" in err

@@ -9,6 +9,10 @@
     difstar fit fit/CAMPAIGN/manifest.json --recovery-study 10 [--seed S]
         (manifests with a ``synthetic`` block) fit from 10 starts perturbed by up to 20 %
         on every free parameter and tabulate the errors against the truth.
+    difstar fit fit/STAR/manifest.json [--out DIR] [--overwrite] [--max-steps N]
+        an image-fit manifest (a star's intensity image: FITS, TIFF, PNG, NumPy) is fitted
+        by the same command, through :func:`difstar.fitting.run_fit_image` (what
+        ``difstar fit-image`` runs, which adds its studies: rough starts, fainter copies).
 
 The command line only: it parses, calls :mod:`difstar._fit_run` (the fit) or
 :mod:`difstar._fit_recovery` (the recovery study) and writes the results and figures.
@@ -181,9 +185,32 @@ def _cmd_synth(a) -> int:
     return 0
 
 
+def _cmd_fit_image_manifest(a) -> int:
+    """``difstar fit`` given an image-fit manifest: the image fitter, its result in
+    ``--out`` (default ``<manifest folder>/result``)."""
+    from difstar.fitting._params import FitInputError
+    from difstar.fitting._run import run as run_fit_image
+    from difstar.io._scene import SceneError
+
+    if a.recovery_study or getattr(a, "devices", None) is not None:
+        raise SceneError(f"{a.manifest}: --recovery-study and --devices are for RAW "
+                         "manifests; for an image fit's rough starts use difstar fit-image "
+                         "--robustness N.")
+    out = Path(a.out) if a.out else Path(a.manifest).parent / "result"
+    try:
+        run_fit_image(a.manifest, out, verbose=True, max_steps=a.max_steps,
+                      overwrite=a.overwrite)
+    except FitInputError as e:
+        raise ValueError(f"difstar fit: {e}") from None
+    return 0
+
+
 def _cmd_fit(a) -> int:
     from difstar._batch import ENV_DEVICES
-    from difstar.io._manifest import load_manifest
+    from difstar.io._manifest import load_manifest, manifest_kind
+
+    if manifest_kind(a.manifest) == "image":
+        return _cmd_fit_image_manifest(a)
     from difstar.io._output import check_output_free, output_dir, write_json
     from difstar.io._scene import SceneError
 
@@ -255,8 +282,11 @@ def register(subparsers, name: str) -> None:
                        "manifest's captures (never the manifest itself)")
         p.set_defaults(func=_cmd_synth)
     elif name == "fit":
-        p = subparsers.add_parser("fit", help="fit optics, exposure and response to RAW captures")
-        p.add_argument("manifest", help="fit manifest JSON (data_schemas/fit_manifest.schema.json)")
+        p = subparsers.add_parser("fit", help="fit a camera to RAW captures, or a PSF model to "
+                                  "a star image (by the manifest's kind)")
+        p.add_argument("manifest", help="fit manifest JSON: RAW captures (data_schemas/"
+                       "fit_manifest.schema.json) or a star image (image_fit_manifest"
+                       ".schema.json)")
         p.add_argument("--out", help="output folder (default: <manifest folder>/result, or "
                                      "/recovery with --recovery-study)")
         p.add_argument("--overwrite", action="store_true",

@@ -24,6 +24,7 @@ from ._raw import (
     RawReadError as RawReadError,
     read_raw as read_raw,
 )
+from ._manifest import manifest_kind as manifest_kind
 from ._scene import (
     SceneError as SceneError,
     load_scene as load_scene,

@@ -64,6 +64,30 @@ def manifest_document(path: str | Path) -> tuple[dict, list[Path]]:
                              anchored=True)
 
 
+#: the top-level fields that say which fitter a manifest is for (both schemas require them)
+KIND_FIELDS = {"raw": ("camera", "configurations", "captures"), "image": ("data", "pupil")}
+
+
+def manifest_kind(path: str | Path) -> str:
+    """Which fitter the manifest at ``path`` is for: ``"raw"`` (RAW captures of a camera,
+    data_schemas/fit_manifest.schema.json) or ``"image"`` (intensity images of a star,
+    image_fit_manifest.schema.json), from its fields once ``extends`` is merged; a
+    manifest with both sets, or neither, is refused naming the fields."""
+    doc, _ = read_json_extends(path, what="fit manifest")
+    if not isinstance(doc, dict):
+        raise SceneError(f"{path}: a fit manifest is a JSON object; got "
+                         f"{type(doc).__name__}.")
+    kinds = [k for k, fields in KIND_FIELDS.items() if any(f in doc for f in fields)]
+    if len(kinds) == 1:
+        return kinds[0]
+    names = "; ".join(f"{k}: {', '.join(f)}" for k, f in KIND_FIELDS.items())
+    which = "both" if kinds else "neither"
+    raise SceneError(f"{path}: fields {sorted(doc)}: the manifest has {which} of the field "
+                     f"sets that say what it fits ({names}); give one set "
+                     "(data_schemas/fit_manifest.schema.json or "
+                     "image_fit_manifest.schema.json).")
+
+
 def load_manifest(path: str | Path) -> Manifest:
     """The RAW-fit manifest at ``path`` (:func:`manifest_document`), checked against its
     schema and resolved."""
