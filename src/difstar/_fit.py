@@ -51,7 +51,7 @@ import numpy as np
 
 from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, simulate
 from ._image import DiscSource
-from ._lm import LMStepper, SolveResult
+from ._lm import LMStepper, SolveResult, with_batched_jacobian
 from ._param import Param
 from ._pupil import Polygon, RegularPolygon
 from ._pupil_curved import CurvedIris
@@ -315,18 +315,10 @@ def make_residual_fn(model: FitModel, *, jac_batch: int = 4, mesh=None) -> Calla
     solve can hold some parameters (e.g. the response curves, at first) without
     recompiling; their Jacobian columns are zero and the damped step leaves them.
 
-    The Jacobian is materialised ``jac_batch`` columns at a time (a custom JVP rule that
-    maps over the parameter directions): forward-mode through the whole chain for all P
-    directions at once would hold P copies of every grid-sized intermediate (tens of
-    GB for a few captures on 400² grids); this way the solver's linearisation keeps only
-    the (residuals × P) matrix.
-
-    ``mesh`` (a one-axis :func:`difstar._batch.device_mesh` of more than one device):
-    the Jacobian's columns of this one fit are shared out over its devices
-    (``shard_map``): each device linearises the chain at ``u`` (the forward model, a
-    few per cent of a step, is repeated on every device) and computes its own slice of
-    the parameter directions, ``jac_batch`` at a time; the rest of the step (the solve
-    for the update, on a P-column matrix) is the same on every device.
+    The Jacobian is materialised ``jac_batch`` columns at a time, and with ``mesh`` (a
+    one-axis :func:`difstar._batch.device_mesh`) its columns are shared out over the
+    devices: :func:`difstar._lm.with_batched_jacobian`, the one Jacobian rule of every
+    difstar fit.
     """
 
     def raw(u, args):
@@ -335,40 +327,7 @@ def make_residual_fn(model: FitModel, *, jac_batch: int = 4, mesh=None) -> Calla
         pred = predict(model, x)
         return {k: (pred[k] - args["data"][k][0]) * args["data"][k][1] for k in pred}
 
-    n_dev = 1 if mesh is None else int(mesh.size)
-
-    @jax.custom_jvp
-    def fn(u, args):
-        return raw(u, args)
-
-    @fn.defjvp
-    def _fn_jvp(primals, tangents):
-        u, args = primals
-        du = tangents[0]  # the data are not differentiated
-        n = u.shape[0]
-        if n == 0:
-            y = raw(u, args)
-            return y, jax.tree_util.tree_map(jnp.zeros_like, y)
-        b = min(jac_batch, -(-n // n_dev))
-        # the directions padded with zero rows to a whole number of batches on every
-        # device: lax.map would trace (and compile) leftover directions as a second,
-        # smaller batch
-        eye = jnp.eye(-(-n // (b * n_dev)) * b * n_dev, n, dtype=u.dtype)
-
-        def columns(eye, u, args):
-            # one trace of the chain: linearised once, its linear map applied to the
-            # rows of eye (parameter directions), b at a time
-            y, column = jax.linearize(lambda v: raw(v, args), u)
-            return y, jax.lax.map(column, eye, batch_size=b)
-
-        if mesh is not None:  # each device its own rows of eye; y is the same on all
-            from ._batch import AXIS, P
-
-            columns = jax.shard_map(columns, mesh=mesh, in_specs=(P(AXIS), P(), P()),
-                                    out_specs=(P(), P(AXIS)), check_vma=False)
-        y, cols = columns(eye, u, args)
-        dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c[:n], axes=1), cols)
-        return y, dy
+    fn = with_batched_jacobian(raw, batch=jac_batch, mesh=mesh)
 
     # jitted, so that the solver's init, its step, the residuals and the Jacobian reuse
     # one trace of the chain instead of tracing it again each (half the compile time)

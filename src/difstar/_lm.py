@@ -30,6 +30,65 @@ import optimistix as optx
 MAX_REJECTED = 10
 
 
+#: Jacobian columns computed at a time (:func:`with_batched_jacobian`): peak memory is
+#: about the forward model's plus this many copies of its grid-sized tangents.
+JAC_BATCH = 4
+
+
+def with_batched_jacobian(raw: Callable, *, batch: int = JAC_BATCH, mesh=None) -> Callable:
+    """``fn(u, args)`` equal to ``raw(u, args)`` (residuals: any pytree of arrays, ``u``
+    a flat vector) whose derivative in ``u`` is computed ``batch`` parameter directions
+    at a time: a custom JVP rule linearises ``raw`` once at ``u`` and maps its linear map
+    over the rows of the identity (``lax.map``), then applies the resulting Jacobian to
+    the tangent. Forward mode through the whole chain for all P directions at once (what
+    optimistix's Levenberg–Marquardt and ``jax.jacfwd`` do by themselves) holds P copies
+    of every grid-sized intermediate — 8 GB for the 81² Spitzer PSF's 16 parameters;
+    this way the linearisation keeps the (residuals × P) matrix and ``batch`` tangents.
+    ``args`` is not differentiated.
+
+    ``mesh`` (a one-axis :func:`difstar._batch.device_mesh` of more than one device):
+    the columns are shared out over its devices (``shard_map``): each device linearises
+    at ``u`` (the forward model, a few per cent of a step, repeated on every device) and
+    computes its own slice of the directions, ``batch`` at a time; the rest of a solver
+    step (on a P-column matrix) is the same on every device."""
+    n_dev = 1 if mesh is None else int(mesh.size)
+
+    @jax.custom_jvp
+    def fn(u, args):
+        return raw(u, args)
+
+    @fn.defjvp
+    def _fn_jvp(primals, tangents):
+        u, args = primals
+        du = tangents[0]  # the data are not differentiated
+        n = u.shape[0]
+        if n == 0:
+            y = raw(u, args)
+            return y, jax.tree_util.tree_map(jnp.zeros_like, y)
+        b = min(batch, -(-n // n_dev))
+        # the directions padded with zero rows to a whole number of batches on every
+        # device: lax.map would trace (and compile) leftover directions as a second,
+        # smaller batch
+        eye = jnp.eye(-(-n // (b * n_dev)) * b * n_dev, n, dtype=u.dtype)
+
+        def columns(eye, u, args):
+            # one trace of the chain: linearised once, its linear map applied to the
+            # rows of eye (parameter directions), b at a time
+            y, column = jax.linearize(lambda v: raw(v, args), u)
+            return y, jax.lax.map(column, eye, batch_size=b)
+
+        if mesh is not None:  # each device its own rows of eye; y is the same on all
+            from ._batch import AXIS, P
+
+            columns = jax.shard_map(columns, mesh=mesh, in_specs=(P(AXIS), P(), P()),
+                                    out_specs=(P(), P(AXIS)), check_vma=False)
+        y, cols = columns(eye, u, args)
+        dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c[:n], axes=1), cols)
+        return y, dy
+
+    return fn
+
+
 class StopRule:
     """The loss-based half of the stopping rule, for one solve: call :meth:`update`
     after every step with the loss of the last accepted point and the solver's count of

@@ -198,7 +198,7 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
              atol: float, ftol: float = 1e-6, label: str | None = None):
     """One Levenberg–Marquardt solve of ``model``'s free parameters; with ``label``, a
     progress bar (tqdm, on stderr) of its steps and χ²."""
-    from .._lm import LMStepper
+    from .._lm import LMStepper, with_batched_jacobian
 
     free = model.free
     if not free:
@@ -216,7 +216,9 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     def residuals(u, _):
         return res(values_of(u))[0]
 
-    residuals = jax.jit(residuals)  # one compile, shared by the check and the solver
+    # the Jacobian a few columns at a time (bounded memory); one compile, shared by the
+    # check and the solver
+    residuals = jax.jit(with_batched_jacobian(residuals))
     u0 = jnp.asarray([_to_u(p) for p in params], float)
     r0 = residuals(u0, None)
     if not bool(jnp.all(jnp.isfinite(r0))):
@@ -254,8 +256,11 @@ def _progress_bar(label: str | None, max_steps: int):
 
 def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
               residual: bool = True):
-    """The residual's Jacobian over the free parameters (physical units) at ``values``;
-    with ``residual``, also the residual and the model images (one more compile)."""
+    """The residual's Jacobian over the free parameters (physical units) at ``values``,
+    a few columns at a time (:func:`difstar._lm.with_batched_jacobian`); with
+    ``residual``, also the residual and the model images (one more compile)."""
+    from .._lm import with_batched_jacobian
+
     free = model.free
     base = {k: jnp.asarray(v, float) for k, v in values.items()}
     resv = _residual_fn(model, data, target)
@@ -267,7 +272,8 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
         return resv(v)
 
     x0 = jnp.asarray([values[k] for k in free], float)
-    jac = np.asarray(jax.jit(jax.jacfwd(lambda x: res(x)[0]))(x0))
+    batched = with_batched_jacobian(lambda x, _: res(x)[0])
+    jac = np.asarray(jax.jit(jax.jacfwd(lambda x: batched(x, None)))(x0))
     if not residual:
         return jac
     r, m = jax.jit(res)(x0)
