@@ -35,9 +35,10 @@ MAX_REJECTED = 10
 JAC_BATCH = 4
 
 
-def with_batched_jacobian(raw: Callable, *, batch: int = JAC_BATCH, mesh=None) -> Callable:
+def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None) -> Callable:
     """``fn(u, args)`` equal to ``raw(u, args)`` (residuals: any pytree of arrays, ``u``
-    a flat vector) whose derivative in ``u`` is computed ``batch`` parameter directions
+    a flat vector) whose derivative in ``u`` is computed ``batch`` (default
+    :data:`JAC_BATCH`) parameter directions
     at a time: a custom JVP rule linearises ``raw`` once at ``u`` and maps its linear map
     over the rows of the identity (``lax.map``), then applies the resulting Jacobian to
     the tangent. Forward mode through the whole chain for all P directions at once (what
@@ -51,6 +52,7 @@ def with_batched_jacobian(raw: Callable, *, batch: int = JAC_BATCH, mesh=None) -
     at ``u`` (the forward model, a few per cent of a step, repeated on every device) and
     computes its own slice of the directions, ``batch`` at a time; the rest of a solver
     step (on a P-column matrix) is the same on every device."""
+    batch = JAC_BATCH if batch is None else int(batch)
     n_dev = 1 if mesh is None else int(mesh.size)
 
     @jax.custom_jvp

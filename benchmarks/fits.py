@@ -1,0 +1,105 @@
+"""What a whole fit costs a user: wall time, peak memory and the result's accuracy of each
+campaign's ``difstar fit``, side by side with issue 33's targets, in one table.
+
+    python benchmarks/fits.py [--cases spitzer,raw,jwst] [--out-root DIR]
+
+Each case runs ``difstar fit MANIFEST --out DIR`` in a fresh Python process (compilation
+included, as a user pays it), one at a time. Wall: the child's whole run, start to exit.
+Peak memory: the child's own maximum resident set size (``resource.getrusage``, read by
+the child as it exits). The accuracy column is the campaign's own figure: the residual
+RMS over the data's peak for a star image (against the measured file), the recovery
+criteria against the known truth for the synthetic RAW captures, plus the seconds from
+process start to the first solver step that ``difstar fit`` reports. The JWST star
+(``jwst``) takes 5–10 minutes on 2 cores; it runs only when named.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: name → (manifest, targets of issue 33: wall s, peak GB, accuracy)
+CASES = {
+    "spitzer": ("fit/spitzer-irac/manifest.json", 30, 1.5, "residual ≤ 0.55 %"),
+    "raw": ("fit/synthetic-paper-camera/manifest.json", 30, None,
+            "criteria 10/10 (recovery study); first step ≤ 10 s"),
+    "jwst": ("fit/jwst-nircam/manifest.json", 60, 2.0, "residual ≤ 0.7 %"),
+}
+
+#: run in the child: the CLI, then its own peak RSS (kB on Linux) on the last line
+_CHILD = """
+import resource, sys
+from difstar.cli import main
+rc = main(sys.argv[1:])
+print("PEAK_RSS_KB", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, flush=True)
+sys.exit(rc)
+"""
+
+
+def run_case(name: str, out_root: Path) -> dict:
+    manifest, t_wall, t_mem, t_acc = CASES[name]
+    out = out_root / name
+    cmd = [sys.executable, "-c", _CHILD, "fit", str(ROOT / manifest), "--out", str(out)]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        tail = (proc.stderr or proc.stdout)[-2000:]
+        raise RuntimeError(f"{name}: difstar fit exited {proc.returncode}:\n{tail}")
+    peak = next(int(ln.split()[1]) for ln in proc.stdout.splitlines()
+                if ln.startswith("PEAK_RSS_KB"))
+    row = {"case": name, "wall_s": wall, "peak_gb": peak / 1024**2,
+           "target_wall_s": t_wall, "target_peak_gb": t_mem, "target": t_acc}
+    if (out / "result.json").exists():  # a star image
+        r = json.loads((out / "result.json").read_text())
+        row["accuracy"] = f"residual {100 * r['residual_rms_over_peak']:.3f} % of peak"
+    else:  # RAW captures with a known truth
+        r = json.loads((out / "fit_result.json").read_text())
+        first = r["timing_s"].get("first_step_since_start")
+        tc = r.get("truth_comparison", {})
+        row["accuracy"] = (f"criteria {'all pass' if tc.get('all_pass') else 'FAIL'}"
+                           + (f"; first step {first:.1f} s" if first is not None else ""))
+    return row
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| case | wall s | target s | wall / target | peak GB | target GB | accuracy "
+             "| target |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        tm = "—" if r["target_peak_gb"] is None else f"{r['target_peak_gb']:.1f}"
+        lines.append(f"| {r['case']} | {r['wall_s']:.0f} | {r['target_wall_s']} | "
+                     f"{r['wall_s'] / r['target_wall_s']:.1f}× | {r['peak_gb']:.2f} | {tm} | "
+                     f"{r['accuracy']} | {r['target']} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", default="spitzer,raw",
+                    help=f"comma-separated, of {', '.join(CASES)} (default spitzer,raw)")
+    ap.add_argument("--out-root", help="folder for the fits' results (default: a "
+                    "temporary folder, removed afterwards)")
+    a = ap.parse_args(argv)
+    names = [c.strip() for c in a.cases.split(",") if c.strip()]
+    unknown = [c for c in names if c not in CASES]
+    if unknown:
+        ap.error(f"--cases: unknown {unknown}; choose from {list(CASES)}")
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(a.out_root) if a.out_root else Path(tmp)
+        rows = []
+        for name in names:
+            print(f"running {name} ...", file=sys.stderr, flush=True)
+            rows.append(run_case(name, root))
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
