@@ -160,8 +160,8 @@ def test_rough_starts_about_the_result(bracket):
 def test_fainter_copies_end_to_end(tmp_path, capsys):
     """--fainter 4 on one capture with noise in electrons (gain 50): the main fit and the
     copy 4 times fainter both recover the generator's centre, and the copy its flux / 4;
-    fit_fainter_copy (what fit/jwst-nircam/faint_copy.py runs) fits the same copy."""
-    from difstar.fitting._run import fit_fainter_copy
+    difstar.fitting.fit_fainter_copy (one copy, from a result folder) fits the same copy."""
+    from difstar.fitting import fit_fainter_copy
 
     lin = _numpy_star((31, 31), **dict(TRUE, background=0.0))
     gain, read = 50.0, 0.05

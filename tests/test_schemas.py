@@ -74,15 +74,22 @@ def _kind(doc) -> str | None:
     keys = {k for k in doc if not k.startswith("$")}
     if keys and keys <= {"designs", "grid"}:
         return "design_sweep"
-    # outputs of `difstar fit-image` and its campaign scripts: no schema (yet)
+    # outputs of `difstar fit-image` (its result and its studies) and of the campaigns'
+    # former scripts: no schema (yet)
     if {"manifest", "status", "converged", "values", "errors"} <= set(doc):
         return "image_fit_result (no schema)"
     if {"starts", "rotation_spread_deg", "perturb"} <= set(doc):
         return "fit-image robustness study (no schema)"
     if {"copies", "rotation_original", "noise"} <= set(doc):
         return "fit-image fainter-copies study (no schema)"
-    if {"slices", "grid_deg", "result"} <= set(doc):
-        return "fit/jwst-nircam rotation_slices.py output (no schema)"
+    if {"kernel", "copies"} <= set(doc):
+        return "fit-image shifted-copies study (no schema)"
+    if set(doc) == {"copies"}:
+        return "fit-image contaminated-copies study (no schema)"
+    if {"param", "within", "noise", "rows"} <= set(doc):
+        return "fit-image noise-limit study (no schema)"
+    if {"slices", "grid_deg", "result"} <= set(doc):  # a script of the campaign's, removed
+        return "fit/jwst-nircam rotation slices (no schema)"
     return None
 
 
@@ -186,9 +193,9 @@ def test_document_validates_against_its_schema(where, doc):
 
 
 def test_outputs_without_a_schema_are_strict_json():
-    """What `difstar fit-image` and the campaign scripts write (no schema yet) is at
-    least JSON that difstar's strict reader takes (no NaN or Infinity): the campaign
-    scripts read result.json back."""
+    """What `difstar fit-image` and its studies write (no schema yet) is at least JSON
+    that difstar's strict reader takes (no NaN or Infinity): the studies read
+    result.json back (fit_fainter_copy, noise_limit)."""
     from difstar.io._json import loads_strict
 
     for p in _json_files():

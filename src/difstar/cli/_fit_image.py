@@ -32,11 +32,28 @@ def _add_arguments(ap) -> None:
                     "(default; a start at 0 moves by 20 %% of half its bounds) or about the "
                     "main fit's result (the issue's 'started 20 %% off' the answer)")
     ap.add_argument("--seed", type=_nonnegative_int, default=0,
-                    help="seed of the rough starts and of the fainter copies' noise "
-                    "(default 0)")
+                    help="seed of the rough starts, of the fainter copies' noise and of the "
+                    "contaminated copies' hot pixels (default 0)")
     ap.add_argument("--fainter", type=_factors, default=(), metavar="F1,F2,...",
                     help="also fit copies of the star F times fainter (stand-ins for other "
                     "stars; needs a noise_from_residuals stage) and write fainter.json/.md")
+    ap.add_argument("--shifted", type=_shift, action="append", default=[], metavar="DX,DY",
+                    help="also fit the star moved by DX columns (right) and DY rows (down) "
+                    "px with Lanczos3 resampling (another star elsewhere on the pixel "
+                    "grid) and write shifted.json/.md; repeat for several moves; write "
+                    "--shifted=-0.5,0 when DX is negative")
+    ap.add_argument("--contaminated", type=_neighbour, action="append", default=[],
+                    metavar="DX,DY,F",
+                    help="also fit the star with a neighbour added (the star itself F times "
+                    "fainter, moved by DX, DY whole px) and --hits hot pixels, and write "
+                    "contaminated.json/.md; repeat for several; e.g. 26,15,30")
+    ap.add_argument("--hits", type=_nonnegative_int, default=6, metavar="N",
+                    help="hot pixels and two-pixel tracks in each --contaminated copy, at "
+                    "least 15 px from the star (default 6)")
+    ap.add_argument("--noise-limit", type=_factors, default=(), metavar="F1,F2,...",
+                    help="also write noise_limit.json/.md: the rotation's Cramér–Rao bound "
+                    "for the star and for stars F times fainter (1 for another as bright; "
+                    "needs a noise_from_residuals stage), e.g. 1,2,4,8,16,32")
 
 
 def _positive_int(text: str) -> int:
@@ -50,11 +67,32 @@ def _factors(text: str) -> tuple[float, ...]:
     try:
         v = tuple(float(t) for t in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--fainter takes factors like 4,16; got {text!r}")
+        raise argparse.ArgumentTypeError(f"takes factors like 4,16; got {text!r}")
     if not v or not all(np.isfinite(x) and x >= 1 for x in v):
-        raise argparse.ArgumentTypeError(f"--fainter factors must be finite and >= 1; got "
-                                         f"{text!r}")
+        raise argparse.ArgumentTypeError(f"factors must be finite and >= 1; got {text!r}")
     return v
+
+
+def _numbers(text: str, n: int, like: str) -> tuple[float, ...]:
+    try:
+        v = tuple(float(t) for t in text.split(","))
+    except ValueError:
+        v = ()
+    if len(v) != n or not all(np.isfinite(x) for x in v):
+        raise argparse.ArgumentTypeError(f"takes {n} numbers like {like}; got {text!r}")
+    return v
+
+
+def _shift(text: str) -> tuple[float, float]:
+    return _numbers(text, 2, "0.5,-0.25")
+
+
+def _neighbour(text: str) -> tuple[int, int, float]:
+    dx, dy, f = _numbers(text, 3, "26,15,30")
+    if not (dx.is_integer() and dy.is_integer() and f >= 1):
+        raise argparse.ArgumentTypeError(f"DX and DY must be whole pixels and F >= 1; got "
+                                         f"{text!r}")
+    return int(dx), int(dy), f
 
 
 def _nonnegative_int(text: str) -> int:
@@ -78,7 +116,8 @@ def _cmd(a) -> int:
     try:
         run(a.manifest, a.out, verbose=not a.quiet, max_steps=a.max_steps,
             overwrite=a.overwrite, robustness=a.robustness, seed=a.seed,
-            fainter=a.fainter, rough_about=a.rough_about)
+            fainter=a.fainter, rough_about=a.rough_about, shifted=tuple(a.shifted),
+            contaminated=tuple(a.contaminated), hits=a.hits, noise_limit=a.noise_limit)
     except FitInputError as e:
         raise ValueError(f"difstar fit-image: {e}") from None
     return 0

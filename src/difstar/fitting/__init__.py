@@ -39,7 +39,9 @@ modules, in the order they build on one another: ``_params`` (:class:`Param`), `
 (pupil builders, :class:`Light`), ``_data`` (:class:`FitData`, :class:`Noise`), ``_model``
 (:class:`ImageModel`), ``_solve`` (one solve, its errors, :class:`FitResult`),
 ``_analysis`` (χ² slices, rough starts, spike angles), ``_stages`` (the checks of a fit's
-stages), ``_procedure`` (:func:`fit`), ``_manifest`` (:func:`load_manifest`).
+stages), ``_procedure`` (:func:`fit`), ``_manifest`` (:func:`load_manifest`), ``_studies``
+(changed copies of a fitted star: fainter, moved on the pixel grid, with a neighbour;
+the noise limit), ``_run`` (:func:`run_fit_image`).
 """
 
 from ._analysis import chi2_at as chi2_at
@@ -62,16 +64,24 @@ from ._parts import iris_pupil as iris_pupil
 from ._parts import jwst_pupil as jwst_pupil
 from ._parts import obstructed_circle_pupil as obstructed_circle_pupil
 from ._procedure import fit as fit
-from ._run import fit_fainter_copy as fit_fainter_copy
 from ._run import run as run_fit_image
 from ._solve import FitResult as FitResult
 from ._solve import model_images as model_images
 from ._solve import noise_limited_errors as noise_limited_errors
+from ._studies import contaminated_image as contaminated_image
+from ._studies import fit_changed_copy as fit_changed_copy
+from ._studies import fit_contaminated_copy as fit_contaminated_copy
+from ._studies import fit_fainter_copy as fit_fainter_copy
+from ._studies import fit_shifted_copy as fit_shifted_copy
+from ._studies import noise_limit as noise_limit
+from ._studies import shifted_image as shifted_image
 
 __all__ = [
     "FitData", "FitInputError", "FitResult", "ImageModel", "Light", "Noise", "Param",
-    "PupilBuilder", "chi2_at", "chi2_slice", "data_intensity", "fainter_copy", "fit",
-    "fit_fainter_copy", "iris_pupil", "jwst_pupil", "load_manifest", "model_images",
-    "noise_from_residuals", "noise_limited_errors", "obstructed_circle_pupil",
-    "reject_outliers", "resolve_data_path", "run_fit_image", "spike_angles",
+    "PupilBuilder", "chi2_at", "chi2_slice", "contaminated_image", "data_intensity",
+    "fainter_copy", "fit", "fit_changed_copy", "fit_contaminated_copy", "fit_fainter_copy",
+    "fit_shifted_copy", "iris_pupil", "jwst_pupil", "load_manifest", "model_images",
+    "noise_from_residuals", "noise_limit", "noise_limited_errors",
+    "obstructed_circle_pupil", "reject_outliers", "resolve_data_path", "run_fit_image",
+    "shifted_image", "spike_angles",
 ]

@@ -4,6 +4,7 @@ maps, sources, parameters)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import warnings
@@ -55,18 +56,26 @@ def _read_at(file: str, field: str, source: str):
         raise FitInputError(f"{source}: field {field}: {e}") from None
 
 def _load_capture(d: Mapping, where, manifest_dir, *, source: str = "manifest",
-                  inputs: list | None = None) -> FitData:
+                  inputs: list | None = None, transform=None) -> FitData:
     """One capture of a manifest's ``data``: its file, window, σ (a number, a σ map file or
     the noise model), exposure and saturation level, checked against the image (the ROI
     inside it, a σ map of its shape, some signal) with errors naming ``where`` (the
     capture's JSON path). The files read are appended to ``inputs``. Pixels that are NaN
-    or infinite (a FITS border) are left out of the fit, with a warning."""
+    or infinite (a FITS border) are left out of the fit, with a warning. ``transform``:
+    see :func:`load_manifest`."""
     if not isinstance(d, Mapping) or "path" not in d:
         raise FitInputError(f"{source}: field {where}: needs a 'path' (the image file).")
     inputs = [] if inputs is None else inputs
     file = resolve_data_path(d["path"], manifest_dir, field=f"{where}/path", source=source)
     inputs.append(file)
     im = _read_at(file, f"{where}/path", source)
+    if transform is not None:  # a changed copy of the image, read as if from a file
+        new = np.asarray(transform(np.where(im.valid, im.data, np.nan)), float)
+        if new.shape != im.shape:
+            raise FitInputError(f"{source}: field {where}/path: the transform returned shape "
+                                f"{new.shape} for an image of shape {im.shape}.")
+        valid = im.valid & np.isfinite(new)
+        im = dataclasses.replace(im, data=np.where(valid, new, 0.0), valid=valid)
     h, w = im.shape
     roi = d.get("roi")
     win = np.s_[:, :]
@@ -373,7 +382,7 @@ def manifest_document(path):
     return read_json_extends(path, what="manifest", path_keys=PATH_KEYS)
 
 
-def load_manifest(path):
+def load_manifest(path, *, transform=None):
     """(model, data, options) from an image-fit manifest (JSON; see
     data_schemas/image_fit_manifest.schema.json). ``data`` is a FitData, or a list of
     them when the manifest's ``data`` is a list of captures (exposures, dithers, an
@@ -390,7 +399,14 @@ def load_manifest(path):
     signal, the obstruction inside the pupil, the parameters the model has, every stage
     with a window that holds pixels and something free): every mistake raises
     :class:`FitInputError` or :class:`difstar.io._scene.SceneError` (both ValueError)
-    naming the manifest and the field, before anything is computed."""
+    naming the manifest and the field, before anything is computed.
+
+    ``transform``: a function applied to each capture's image as read (the file's whole
+    frame, rows down as the fit sees them, NaN where the file holds no valid value)
+    before anything else, returning an image of the same shape: the manifest then fits
+    that changed copy as if the file held it (its window, σ from the noise model,
+    ``"auto"`` starts, checks; a σ map is not changed). Pixels it makes NaN are left out.
+    :func:`difstar.fitting.fit_changed_copy` fits such a copy."""
     from pathlib import Path
 
     from ..io._json import SceneError, validate
@@ -407,7 +423,7 @@ def load_manifest(path):
     caps = man["data"] if several else [man["data"]]
     inputs: list[str] = [str(c) for c in chain[1:]]  # the manifests it extends
     fds = [_load_capture(d, f"data/{i}" if several else "data", path.parent, source=src,
-                         inputs=inputs)
+                         inputs=inputs, transform=transform)
            for i, d in enumerate(caps)]
     fd = fds[0]
     pu = dict(man["pupil"])

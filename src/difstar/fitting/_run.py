@@ -1,7 +1,8 @@
 """A fit of an image-fit manifest, its studies and its result folder (what
 ``difstar fit-image`` runs; :func:`difstar.fitting.run_fit_image`): the fit by the
-manifest's stages, then optionally fits from rough starts (``robustness``) and of copies
-of the star made fainter (``fainter``).
+manifest's stages, then optionally fits from rough starts (``robustness``) and the
+studies of ``_studies`` (copies of the star made fainter, moved, contaminated; the
+noise limit).
 
     difstar fit-image fit/jwst-nircam/manifest.json --out fit/jwst-nircam/result
 
@@ -74,31 +75,42 @@ def _figure(res, path, title):
 
 def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         max_steps: int | None = None, overwrite: bool = False, robustness: int = 0,
-        seed: int = 0, fainter: tuple[float, ...] = (), rough_about: str = "start") -> dict:
+        seed: int = 0, fainter: tuple[float, ...] = (), rough_about: str = "start",
+        shifted: tuple[tuple[float, float], ...] = (),
+        contaminated: tuple[tuple[int, int, float], ...] = (), hits: int = 6,
+        noise_limit: tuple[float, ...] = ()) -> dict:
     """Fit the manifest's model to its data; write result.json, fit.png, model.npy into
-    ``out``, a folder difstar creates (whole or not at all; see ``io._output``). With
-    ``robustness`` = N, also refit from N rough starts (every free parameter ± 20 %,
-    :func:`difstar.fitting._analysis.perturbed_starts`; about the manifest's starts, or with
-    ``rough_about="result"`` about the main fit's values) and write robustness.json / .md;
-    with
-    ``fainter`` = (f1, …), also fit copies of the star f times fainter
-    (:func:`difstar.fitting.fainter_copy`, stand-ins for other stars) and write
-    fainter.json / .md."""
+    ``out``, a folder difstar creates (whole or not at all; see ``io._output``). Then,
+    each into the same folder (:mod:`difstar.fitting._studies`):
+
+    - ``robustness`` = N: refit from N rough starts (every free parameter ± 20 %,
+      :func:`difstar.fitting._analysis.perturbed_starts`; about the manifest's starts,
+      or with ``rough_about="result"`` about the main fit's values):
+      robustness.json / .md;
+    - ``fainter`` = (f1, …): fit copies of the star f times fainter
+      (:func:`difstar.fitting.fit_fainter_copy`, stand-ins for other stars; noise draw
+      ``seed`` + i): fainter.json / .md;
+    - ``shifted`` = ((dx, dy), …): fit the star moved by dx columns and dy rows
+      (:func:`difstar.fitting.fit_shifted_copy`, Lanczos3): shifted.json / .md;
+    - ``contaminated`` = ((dx, dy, factor), …): fit the star with a neighbour ``factor``
+      times fainter at (dx, dy) whole px and ``hits`` hot pixels (seed ``seed`` + i)
+      added (:func:`difstar.fitting.fit_contaminated_copy`): contaminated.json / .md;
+    - ``noise_limit`` = (f1, …): the rotation's Cramér–Rao bound for the star and for
+      stars f times fainter (:func:`difstar.fitting.noise_limit`): noise_limit.json / .md.
+
+    A study the manifest cannot run is refused before the main fit."""
     import jax
 
     from ..io._output import output_dir
+    from . import _studies
     from ._manifest import load_manifest
-    from ._params import FitInputError
 
     jax.config.update("jax_enable_x64", True)
     t0 = time.perf_counter()
-    loaded = load_manifest(manifest)  # read once here, for the check and the main fit
-    if fainter and isinstance(loaded[1], list):
-        raise FitInputError("--fainter takes a manifest with one capture (its data is a list "
-                            "of captures); leave --fainter out.")
-    if fainter and not any(isinstance(st, dict) and st.get("noise_from_residuals") is not None
-                           for st in loaded[2]["stages"] or ()):
-        raise FitInputError(_NEEDS_NOISE)  # refused before the main fit, not after it
+    loaded = load_manifest(manifest)  # read once here, for the checks and the main fit
+    _studies._check_studies(manifest, loaded, fainter=fainter, shifted=shifted,
+                            contaminated=contaminated, hits=hits, seed=seed,
+                            noise_limit=noise_limit)
     # every file the manifest made difstar read is an input: never replaced, never held
     inputs = [manifest, *loaded[2].get("inputs", ())]
     with output_dir(out, overwrite=overwrite, inputs=inputs, command="fit-image") as tmp:
@@ -107,91 +119,16 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         if robustness:
             _robustness(manifest, tmp, summary, robustness, seed, max_steps=max_steps,
                         verbose=verbose, about=rough_about)
+        kw = dict(max_steps=max_steps, verbose=verbose)
         if fainter:
-            _fainter(manifest, tmp, summary, fainter, seed, max_steps=max_steps,
-                     verbose=verbose)
+            _studies._fainter(manifest, tmp, summary, fainter, seed, **kw)
+        if shifted:
+            _studies._shifted(manifest, tmp, summary, shifted, **kw)
+        if contaminated:
+            _studies._contaminated(manifest, tmp, summary, contaminated, hits, seed, **kw)
+        if noise_limit:
+            _studies._noise_limit(manifest, tmp, summary, noise_limit, verbose=verbose)
         return summary
-
-
-_NEEDS_NOISE = ("--fainter needs a stage with noise_from_residuals in the manifest (the "
-                "fainter copies need a noise model in the data's units); add one or leave "
-                "--fainter out.")
-
-
-def _copy_noise(summary):
-    """The noise the fainter copies get: the read noise and gain that the manifest's
-    noise_from_residuals estimated (result.json's ``noise``)."""
-    from ._data import Noise
-    from ._params import FitInputError
-
-    n = summary.get("noise")
-    if n is None:
-        raise FitInputError(_NEEDS_NOISE)
-    return Noise(n["read"], n["gain"], 0.0)
-
-
-def fit_fainter_copy(manifest, summary, model_image, factor, seed, *, max_steps=None,
-                     verbose=False):
-    """Fit, by ``manifest``'s stages, a copy of its star ``factor`` times fainter with the
-    noise of draw ``seed`` (:func:`difstar.fitting.fainter_copy`), made from a fit of
-    the star: ``summary`` (result.json's content: the background and the noise estimated
-    from the residuals) and its ``model_image``. Returns the copy's FitResult."""
-    from ._data import FitData, Noise, fainter_copy
-    from ._manifest import load_manifest
-    from ._procedure import fit
-
-    model, data, opts = load_manifest(manifest)
-    noise = _copy_noise(summary)
-    d = fainter_copy(data, model_image, summary["values"]["background"], factor, noise,
-                     seed=seed)
-    nz = opts["manifest"]["data"].get("noise", {})  # σ as the manifest makes them
-    d = FitData.from_array(d.image, mask=data.mask, pixel_scale=data.pixel_scale,
-                           noise=Noise(nz.get("read"), float(nz.get("gain", 1.0)),
-                                       float(nz.get("floor", 0.0))))
-    m = model.with_values({"flux": model.params["flux"].value / factor})
-    return fit(m, d, stages=opts["stages"], max_steps=max_steps or opts["max_steps"],
-               verbose=verbose)
-
-
-def _fainter(manifest, out, summary, factors, seed, *, max_steps, verbose) -> dict:
-    """Fit copies of the star made ``factors`` times fainter; compare the geometry."""
-    noise = _copy_noise(summary)
-    ref = summary["values"]
-    mimg = np.load(Path(out) / "model.npy")
-    rows = []
-    for i, f in enumerate(factors):
-        t = time.perf_counter()
-        res = fit_fainter_copy(manifest, summary, mimg, f, seed + i, max_steps=max_steps)
-        rows.append({"factor": f, "rotation": res.values["rotation"],
-                     "rotation_error": res.errors.get("rotation"),
-                     "residual_rms_over_peak": res.residual_rms_peak, "status": res.status,
-                     "values": res.values, "seconds": time.perf_counter() - t})
-        if verbose:
-            print(f"fainter × {f:g}: rotation {res.values['rotation']:.4f}° "
-                  f"({rows[-1]['seconds']:.0f} s)", flush=True)
-    rot = np.array([ref["rotation"]] + [r["rotation"] for r in rows])
-    study = {"seed": seed, "noise": {"read": noise.read, "gain": noise.gain},
-             "rotation_original": ref["rotation"], "copies": rows,
-             "rotation_spread_deg": float(rot.max() - rot.min())}
-    (Path(out) / "fainter.json").write_text(json.dumps(study, indent=2, default=float) + "\n")
-
-    def pm(err):  # no standard error where the manifest holds the rotation
-        return "(fixed)" if err is None else f"± {err:.4f}"
-
-    lines = ["Copies of the star made f times fainter, with the noise a fainter star would "
-             f"have (read {noise.read:.3g}, gain {noise.gain:.4g} in the data's units, "
-             "estimated from the residuals), fitted by the same manifest.", "",
-             "| star | rotation (°) | residual RMS / peak | status | s |", "|---|---|---|---|---|",
-             f"| original | {ref['rotation']:.4f} {pm(summary['errors'].get('rotation'))} "
-             f"| {100 * summary['residual_rms_over_peak']:.3f} % | {summary['status']} | "
-             f"{summary['wall_time_s']:.0f} |"]
-    for r in rows:
-        lines.append(f"| × 1/{r['factor']:g} | {r['rotation']:.4f} {pm(r['rotation_error'])} "
-                     f"| {100 * r['residual_rms_over_peak']:.3f} % | {r['status']} | "
-                     f"{r['seconds']:.0f} |")
-    lines += ["", f"Spread of the rotations: {study['rotation_spread_deg']:.4f}°."]
-    (Path(out) / "fainter.md").write_text("\n".join(lines) + "\n")
-    return study
 
 
 def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose,
