@@ -532,6 +532,13 @@ def test_out_of_range_numbers_load_or_are_refused_cleanly(prop_folder, path, val
     _load_or_refuse(prop_folder, edited(path, value, PROP_DOC))
 
 
+def test_a_pupil_wider_than_a_kilometre_is_refused_not_overflowed(prop_folder):
+    """Found by the property test above: a pupil radius of 1e300 m overflowed a float in
+    the PSF planner (OverflowError) instead of being refused at the manifest."""
+    msg = _load_or_refuse(prop_folder, edited(("pupil", "radius"), 1e300, PROP_DOC))
+    assert msg is not None and "pupil/radius" in msg and "1000" in msg, msg
+
+
 @PROP
 @given(path=st.sampled_from(LEAVES), value=JUNK)
 def test_junk_never_escapes_as_another_error(prop_folder, path, value):
