@@ -134,6 +134,32 @@ def test_curved_iris_and_zernike_parameters():
     _err(d, r"field parameters")
 
 
+def test_a_camera_pupil_builder_and_its_parameters():
+    """camera.pupil makes the exit pupil one of the image fit's builders (a mirror lens:
+    an obstructed circle with struts); its parameters are fit parameters, circumradius
+    and the other iris parameters are refused with it, and required without it."""
+    from difstar._fit_run import camera_constants
+
+    d = copy.deepcopy(BASE)
+    d["camera"]["pupil"] = {"builder": "circle", "radius": 1.2e-3}
+    circ = d["parameters"].pop("circumradius")
+    d["parameters"]["obstruction"] = {"free": True, "start": 4e-4, "bounds": [1e-4, 7e-4]}
+    d["parameters"]["strut_width"] = {"start": 3e-5}
+    man = manifest_from_dict(d, path="/x/m.json")
+    assert man.parameters["obstruction"]["shape"] == ()
+    assert camera_constants(man).pupil.name == "circle"
+    d["parameters"]["circumradius"] = circ
+    _err(d, r"field parameters/circumradius: 'circumradius' belongs to the blades iris; a "
+         r"camera.pupil builder \('circle'\) has obstruction, radius, strut_width")
+    del d["parameters"]["circumradius"]
+    d["camera"]["pupil"]["builder"] = "lens"
+    _err(d, r"field camera/pupil/builder")
+    del d["camera"]["pupil"]
+    _err(d, r"field parameters/obstruction")
+    d["parameters"].pop("obstruction"), d["parameters"].pop("strut_width")
+    _err(d, r"field parameters: the blades iris needs circumradius")
+
+
 def test_truth_block_for_captures_made_elsewhere():
     d = copy.deepcopy(BASE)
     d["truth"] = {"made_by": "elsewhere", "values": {"circumradius": 1.25e-3, "defocus/c": 0.0011}}

@@ -43,6 +43,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -65,7 +66,14 @@ UNITS = {
     "vertex_radial": "1", "vertex_angular": "rad",
     "defocus": "m", "source_radius": "m", "source_offset": "px", "phi0": "s", "toe": "1",
     "knee": "1", "background": "1", "exposure_scale": "1",
+    # a pupil builder's parameters (CameraConstants.pupil): exit-pupil metres, degrees
+    "radius": "m", "obstruction": "m", "strut_width": "m", "flat_to_flat": "m", "gap": "m",
+    "strut_spread": "deg", "strut_tilt": "deg",
 }
+
+
+#: the parameters of the blades iris (no CameraConstants.pupil) only
+IRIS_ONLY = ("circumradius", "curvature", "vertex_radial", "vertex_angular")
 
 
 def base_name(name: str) -> str:
@@ -83,8 +91,15 @@ def unit_of(name: str) -> str:
     return UNITS["zernike"] if zernike_index(name) is not None else UNITS[base_name(name)]
 
 
-def param_shape(name: str, n_blades: int) -> tuple[int, ...]:
+def param_shape(name: str, n_blades: int, pupil=None) -> tuple[int, ...]:
+    """The shape of parameter ``name``; ``pupil`` (a :class:`difstar.PupilBuilder`, as
+    :attr:`CameraConstants.pupil`) adds its named parameters, each a number."""
     b = base_name(name)
+    if pupil is not None and b in builder_parameters(pupil):
+        return ()
+    if pupil is not None and b in IRIS_ONLY:
+        raise ValueError(f"{name!r} belongs to the blades iris; a camera.pupil builder "
+                         f"({pupil.name!r}) has {', '.join(sorted(builder_parameters(pupil)))}")
     if b in ("vertex_radial", "vertex_angular"):
         return (n_blades,)
     if b in ("phi0", "toe", "knee", "background"):
@@ -97,7 +112,15 @@ def param_shape(name: str, n_blades: int) -> tuple[int, ...]:
     j = zernike_index(b)
     if j is not None and j >= 2:
         return ()
-    raise ValueError(f"unknown fit parameter {name!r}")
+    known = "" if pupil is None else (f"; this pupil ({pupil.name!r}) has "
+                                      f"{', '.join(sorted(builder_parameters(pupil)))}")
+    raise ValueError(f"unknown fit parameter {name!r}{known}")
+
+
+def builder_parameters(pupil) -> dict[str, float]:
+    """A pupil builder's parameters a RAW fit can name, with their defaults (those a
+    camera's single pupil has: not the segmented pupils' ``incoherent`` fraction)."""
+    return {k: v for k, v in pupil.defaults.items() if k != "incoherent"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +137,11 @@ class CameraConstants:
     white_balance: tuple[float, float, float] = (2.0, 1.0, 2.0)
     colour_matrix: tuple | None = None
     zernike_radius: float | None = None  # m; the Zernike terms' circle (None: no terms)
+    #: the exit pupil as a :class:`difstar.PupilBuilder` of named parameters (e.g.
+    #: :func:`difstar.obstructed_circle_pupil` for a mirror lens), rotated by
+    #: ``rotation``; ``n_blades`` is then only the period 2π/n of the rotation. None:
+    #: the ``n_blades`` iris of ``circumradius`` (and ``curvature``, vertex deviations).
+    pupil: Any = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,7 +178,7 @@ class FitModel:
             if not isinstance(p, Param):
                 raise ValueError(f"parameter {name}: expected a difstar Param; got "
                                  f"{type(p).__name__}")
-            want = param_shape(name, self.camera.n_blades)
+            want = param_shape(name, self.camera.n_blades, self.camera.pupil)
             if p.shape != want:
                 raise ValueError(f"parameter {name}: shape {p.shape}, expected {want}")
             if p.free and p.bounds is None:
@@ -160,7 +188,8 @@ class FitModel:
         for c in self.captures:
             if c.config not in cfg:
                 raise ValueError(f"capture {c.name}: unknown configuration {c.config!r}")
-        for req in ("circumradius", "rotation", "source_radius", "phi0", "toe", "knee"):
+        need = ("rotation", "source_radius", "phi0", "toe", "knee")
+        for req in need if self.camera.pupil is not None else ("circumradius", *need):
             if req not in self.params:
                 raise ValueError(f"fit model lacks parameter {req!r}")
 
@@ -214,6 +243,10 @@ def from_unconstrained(model: FitModel, u: jax.Array) -> dict[str, jax.Array]:
 
 
 def pupil_of(model: FitModel, x: dict):
+    builder = model.camera.pupil
+    if builder is not None:  # named parameters from x, the others at their defaults
+        values = {k: x.get(k, v) for k, v in builder_parameters(builder).items()}
+        return builder.build(values).transformed(x["rotation"])
     n = model.camera.n_blades
     r, rot = x["circumradius"], x["rotation"]
     dr = x.get("vertex_radial")

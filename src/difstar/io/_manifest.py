@@ -154,6 +154,7 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
 
     params: dict[str, dict] = {}
     n = int(cam["blades"])
+    pupil = camera_pupil(cam, src)
     for name, p in doc["parameters"].items():
         where = f"{src}: field parameters/{name}"
         kind, _, ref = name.partition("/")
@@ -161,7 +162,10 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
             raise SceneError(f"{where}: {ref!r} is not one of the configurations {sorted(configs)}")
         if kind == "exposure_scale" and ref not in names:
             raise SceneError(f"{where}: {ref!r} is not one of the capture names {sorted(names)}")
-        shape = param_shape(name, n)
+        try:
+            shape = param_shape(name, n, pupil)
+        except ValueError as e:
+            raise SceneError(f"{where}: {e}") from None
         start = _shaped(p["start"], shape, where + "/start")
         _check_sign(kind, start, where + "/start")
         free = bool(p.get("free", False))
@@ -179,6 +183,9 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
         params[name] = {"shape": shape, "free": free, "start": start, "lo": lo, "hi": hi,
                         "perturb_scale": scale}
 
+    if pupil is None and "circumradius" not in params:
+        raise SceneError(f"{src}: field parameters: the blades iris needs circumradius (its "
+                         "exit-pupil circumradius, m); give it, or a camera.pupil builder.")
     zern = sorted(k for k in params if zernike_index(k) is not None)
     if zern and "zernike_radius" not in cam:
         raise SceneError(
@@ -227,6 +234,23 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
                 "reweight": 1, **doc.get("solver", {})},
         synthetic=syn, truth=truth,
     )
+
+
+def camera_pupil(cam: dict, src="<manifest>"):
+    """The camera's pupil builder from ``camera.pupil`` (``{"builder": "circle",
+    "radius": …}``, the image fit's builders and their keyword arguments, exit-pupil
+    metres), or None (the ``blades`` iris)."""
+    spec = cam.get("pupil")
+    if spec is None:
+        return None
+    from ..fitting._params import FitInputError
+    from ..fitting._parts import BUILDERS
+
+    kw = {k: v for k, v in spec.items() if k != "builder"}
+    try:
+        return BUILDERS[spec["builder"]](**kw)
+    except (FitInputError, TypeError, ValueError) as e:
+        raise SceneError(f"{src}: field camera/pupil: {e}") from None
 
 
 def _truth_values(values: dict, params: dict, where: str) -> dict:
