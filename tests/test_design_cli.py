@@ -254,12 +254,12 @@ def test_study_hands_lbfgsb_and_its_bounds_to_design(monkeypatch):
     r = S.iris_study(quick=True, steps=8, optimiser="lbfgsb", max_curvature=0.4,
                      vertex_bound=0.01, log=lambda m: None)
     assert r["config"]["optimiser"] == "lbfgsb" and len(calls) == 2
-    (box1, opt1, steps1), (box2, opt2, steps2) = calls
+    ((lo1, hi1), opt1, steps1), ((lo2, hi2), opt2, steps2) = calls  # bounds (lower, upper)
     assert opt1 == opt2 == "lbfgsb" and steps1 == steps2 == 8
-    assert float(box1.lower.curvature) == 0.0 and float(box1.upper.curvature) == 0.4
-    np.testing.assert_array_equal(np.asarray(box1.lower.radial), 0.0)
-    np.testing.assert_array_equal(np.asarray(box1.upper.radial), 0.0)
-    assert float(box2.upper.curvature) == 0.4
+    assert float(lo1.curvature) == 0.0 and float(hi1.curvature) == 0.4
+    np.testing.assert_array_equal(np.asarray(lo1.radial), 0.0)
+    np.testing.assert_array_equal(np.asarray(hi1.radial), 0.0)
+    assert float(hi2.curvature) == 0.4
     for part in ("radial", "angular"):
-        np.testing.assert_allclose(np.asarray(getattr(box2.lower, part)), -0.01)
-        np.testing.assert_allclose(np.asarray(getattr(box2.upper, part)), 0.01)
+        np.testing.assert_allclose(np.asarray(getattr(lo2, part)), -0.01)
+        np.testing.assert_allclose(np.asarray(getattr(hi2, part)), 0.01)
