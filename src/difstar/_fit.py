@@ -340,7 +340,7 @@ def noise_sigma(zeta, *, gain_e_per_dn, read_noise_dn, full_scale_dn):
     return jnp.sqrt(z / (gain_e_per_dn * full_scale_dn) + (read_noise_dn / full_scale_dn) ** 2)
 
 
-def make_residual_fn(model: FitModel, *, jac_batch: int = 4, mesh=None) -> Callable:
+def make_residual_fn(model: FitModel, *, jac_batch: int | None = None, mesh=None) -> Callable:
     """``fn(u, args) -> residuals`` per configuration, (K_c, h, w).
 
     ``args = {"data": {config: (ζ_obs, weight)}, "active": (P,), "u_ref": (P,)}``: only
@@ -348,10 +348,10 @@ def make_residual_fn(model: FitModel, *, jac_batch: int = 4, mesh=None) -> Calla
     solve can hold some parameters (e.g. the response curves, at first) without
     recompiling; their Jacobian columns are zero and the damped step leaves them.
 
-    The Jacobian is materialised ``jac_batch`` columns at a time, and with ``mesh`` (a
-    one-axis :func:`difstar._batch.device_mesh`) its columns are shared out over the
-    devices: :func:`difstar._lm.with_batched_jacobian`, the one Jacobian rule of every
-    difstar fit.
+    The Jacobian is materialised ``jac_batch`` columns at a time (default
+    :data:`difstar._lm.JAC_BATCH`), and with ``mesh`` (a one-axis
+    :func:`difstar._batch.device_mesh`) its columns are shared out over the devices:
+    :func:`difstar._lm.with_batched_jacobian`, the one Jacobian rule of every difstar fit.
     """
 
     def raw(u, args):

@@ -325,59 +325,62 @@ def _copies_md(path, intro, what_col, rows, labels, summary) -> None:
     Path(path).write_text("\n".join(lines) + "\n")
 
 
+def _copy_study(out, name, copies, summary, *, intro, column, verbose, extra=None) -> dict:
+    """Fit each copy of ``copies`` — (table label, progress label, the row's own fields,
+    a function fitting it, the expected change of each value or None) — compare it with
+    the star's fit, and write NAME.json and NAME.md into ``out``."""
+    rows = []
+    for _, said, fields, fit, expected in copies:
+        t = time.perf_counter()
+        res = fit()
+        rows.append({**fields, **_copy_row(res, summary, time.perf_counter() - t, expected)})
+        if verbose:
+            print(f"{said}: rotation {res.values['rotation']:.4f}° "
+                  f"({rows[-1]['seconds']:.0f} s)", flush=True)
+    study = {**(extra or {}), "copies": rows}
+    _dump(Path(out) / f"{name}.json", study)
+    _copies_md(Path(out) / f"{name}.md", intro, column, rows, [c[0] for c in copies],
+               summary)
+    return study
+
+
 def _shifted(manifest, out, summary, moves, *, max_steps, verbose) -> dict:
     """Fit the star moved by each (dx, dy) of ``moves``; compare with the star's fit."""
-    rows = []
-    for dx, dy in moves:
-        t = time.perf_counter()
-        res = fit_shifted_copy(manifest, dx, dy, max_steps=max_steps)
 
-        def expected(k, v, dx=dx, dy=dy):  # the centre moves with the star
-            return v + {"x0": dx, "y0": dy}.get(k.split("@")[0], 0.0)
+    def expected(dx, dy):  # the centre moves with the star
+        return lambda k, v: v + {"x0": dx, "y0": dy}.get(k.split("@")[0], 0.0)
 
-        rows.append({"shift": [dx, dy], **_copy_row(res, summary, time.perf_counter() - t,
-                                                   expected)})
-        if verbose:
-            print(f"moved by ({dx:g}, {dy:g}) px: rotation {res.values['rotation']:.4f}° "
-                  f"({rows[-1]['seconds']:.0f} s)", flush=True)
-    study = {"kernel": "lanczos3", "copies": rows}
-    _dump(Path(out) / "shifted.json", study)
-    _copies_md(Path(out) / "shifted.md",
-               "The star moved by (DX, DY) px (DX columns right, DY rows down) with Lanczos3 "
-               "resampling (the kernel SWarp resamples co-adds with), as another star of "
-               "its kind elsewhere on the pixel grid, fitted by the same manifest. Δ: each "
-               "free parameter less the star's (x0, y0: less the star's plus the move), in "
-               "the star's standard errors.", "move (DX, DY) px", rows,
-               [f"({dx:g}, {dy:g})" for dx, dy in moves], summary)
-    return study
+    copies = [(f"({dx:g}, {dy:g})", f"moved by ({dx:g}, {dy:g}) px", {"shift": [dx, dy]},
+               lambda dx=dx, dy=dy: fit_shifted_copy(manifest, dx, dy, max_steps=max_steps),
+               expected(dx, dy)) for dx, dy in moves]
+    return _copy_study(
+        out, "shifted", copies, summary, verbose=verbose, extra={"kernel": "lanczos3"},
+        column="move (DX, DY) px",
+        intro="The star moved by (DX, DY) px (DX columns right, DY rows down) with Lanczos3 "
+              "resampling (the kernel SWarp resamples co-adds with), as another star of "
+              "its kind elsewhere on the pixel grid, fitted by the same manifest. Δ: each "
+              "free parameter less the star's (x0, y0: less the star's plus the move), in "
+              "the star's standard errors.")
 
 
 def _contaminated(manifest, out, summary, neighbours, hits, seed, *, max_steps,
                   verbose) -> dict:
     """Fit the star with each neighbour of ``neighbours`` and ``hits`` hot pixels (seed
     ``seed`` + i for the i-th copy) added; compare with the star's fit."""
-    rows = []
-    for i, (dx, dy, f) in enumerate(neighbours):
-        t = time.perf_counter()
-        res = fit_contaminated_copy(manifest, neighbour=(dx, dy, f), hits=hits,
-                                    seed=seed + i, max_steps=max_steps)
-        rows.append({"neighbour": [dx, dy, f], "hits": hits, "seed": seed + i,
-                     **_copy_row(res, summary, time.perf_counter() - t)})
-        if verbose:
-            print(f"contaminated ({dx:g}, {dy:g}) × 1/{f:g}: rotation "
-                  f"{res.values['rotation']:.4f}° ({rows[-1]['seconds']:.0f} s)", flush=True)
-    study = {"copies": rows}
-    _dump(Path(out) / "contaminated.json", study)
-    _copies_md(Path(out) / "contaminated.md",
-               "The star with a neighbour (the star itself less its border's median, F times "
-               "fainter, moved by (DX, DY) whole px: columns right, rows down) and hot "
-               "pixels and two-pixel tracks (0.3–10 % of the peak, at least 15 px from the "
-               "star), fitted by the same manifest; what its reject stages are for. Δ: each "
-               "free parameter less the star's, in the star's standard errors.",
-               "neighbour (DX, DY) px, × 1/F; hits (seed)",
-               rows, [f"({dx:g}, {dy:g}), × 1/{f:g}; {hits} ({seed + i})"
-                      for i, (dx, dy, f) in enumerate(neighbours)], summary)
-    return study
+    copies = [(f"({dx:g}, {dy:g}), × 1/{f:g}; {hits} ({seed + i})",
+               f"contaminated ({dx:g}, {dy:g}) × 1/{f:g}",
+               {"neighbour": [dx, dy, f], "hits": hits, "seed": seed + i},
+               lambda n=(dx, dy, f), s=seed + i: fit_contaminated_copy(
+                   manifest, neighbour=n, hits=hits, seed=s, max_steps=max_steps),
+               None) for i, (dx, dy, f) in enumerate(neighbours)]
+    return _copy_study(
+        out, "contaminated", copies, summary, verbose=verbose,
+        column="neighbour (DX, DY) px, × 1/F; hits (seed)",
+        intro="The star with a neighbour (the star itself less its border's median, F times "
+              "fainter, moved by (DX, DY) whole px: columns right, rows down) and hot "
+              "pixels and two-pixel tracks (0.3–10 % of the peak, at least 15 px from the "
+              "star), fitted by the same manifest; what its reject stages are for. Δ: each "
+              "free parameter less the star's, in the star's standard errors.")
 
 
 def _noise_limit(manifest, out, summary, factors, *, verbose) -> dict:
