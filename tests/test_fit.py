@@ -83,6 +83,19 @@ def test_transform_roundtrip_and_bounds():
         assert np.all(np.asarray(x[name]) <= hi) and np.all(np.asarray(x[name]) >= lo)
 
 
+def test_a_start_far_inside_wide_bounds_is_kept():
+    """φ0's bounds span eight decades: a start of 0.26 (2,600 times the lower bound) is
+    not near a bound and must come back unchanged (it was moved to 1.0 when the image
+    fit's start margin, 1e-4 of the range, was applied here: the photometric start of
+    φ0 was lost and the curved-iris campaign started 4 times too dark)."""
+    model = _model(free=FREE | {"phi0": (1e-4, 1e4)},
+                   extra={"phi0": F.Param(np.full(3, 1.0), True, (1e-4, 1e4))})
+    want = {k: np.asarray(model.params[k].value) for k in model.free}
+    want["phi0"] = np.array([0.26, 0.2, 0.34])
+    x = F.from_unconstrained(model, F.to_unconstrained(model, want))
+    np.testing.assert_allclose(np.asarray(x["phi0"]), want["phi0"], rtol=1e-9)
+
+
 def test_param_errors():
     with pytest.raises(ValueError, match="phi0: a free parameter of a RAW fit needs bounds"):
         _model(extra={"phi0": F.Param(np.full(3, 0.01), True)})

@@ -220,11 +220,19 @@ class FitModel:
 
 # ---------------------------------------------------------------- parameter transforms
 
+#: How far inside its bounds a start is moved, as a fraction of the range. The RAW fit's
+#: bounds often span decades (φ0 in [1e-4, 1e4]), where the image fit's
+#: :data:`difstar._param.START_MARGIN` (1e-4 of the range, here 1.0) would move a start
+#: of 0.26 up to 1: only starts within 1e-9 of the range of a bound are moved.
+RAW_START_MARGIN = 1e-9
+
+
 def to_unconstrained(model: FitModel, values: dict | None = None) -> jax.Array:
     """Flat u for the free parameters' ``values`` (default: their starts), by the one
-    bound map (:class:`difstar._param.Param`)."""
-    parts = [np.ravel(model.params[k].to_unconstrained(None if values is None
-                                                       else np.asarray(values[k], float)))
+    bound map (:class:`difstar._param.Param`), starts moved inside by
+    :data:`RAW_START_MARGIN` at most."""
+    parts = [np.ravel(model.params[k].to_unconstrained(
+        None if values is None else np.asarray(values[k], float), margin=RAW_START_MARGIN))
              for k in model.free]
     return jnp.asarray(np.concatenate(parts)) if parts else jnp.zeros((0,))
 

@@ -83,8 +83,10 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
             if p is not None and p.free:
                 x[key] = 1.3 * np.abs(p.value) + 0.3 * man.parameters[key]["perturb_scale"]
         camera, scene, _, _ = camera_scene(probe, x, name)
-        g = choose_grid(camera, scene, crop=crop, padding=pad, raw_only=True,
-                        oversample=man.grid.get("oversample"))
+        acc = man.grid.get("accuracy")
+        g = choose_grid(camera, scene, crop=crop, raw_only=True,
+                        oversample=man.grid.get("oversample"),
+                        **({"padding": pad} if acc is None else {"accuracy": acc}))
         dz = probe.params.get(f"defocus/{name}")
         use_dz = g.use_defocus or (dz is not None and dz.free)
         # windows (FFT path: the pupil's ATF and the sources' image computed only where
