@@ -64,6 +64,11 @@ def test_schema_errors_name_the_field():
     d = copy.deepcopy(BASE)
     d["captures"][0]["roi_size"] = [65, 64]
     _err(d, r"field captures/0/roi_size/0")
+    d = copy.deepcopy(BASE)
+    d["grid"] = {"padding": 1.0, "accuracy": 1e-2}  # two answers to one question
+    _err(d, r"field grid")
+    d["grid"] = {"accuracy": 0.0}
+    _err(d, r"field grid/accuracy")
 
 
 def test_cross_reference_errors():

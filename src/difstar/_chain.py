@@ -126,7 +126,11 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     The sensor integrates the optical image over each pixel exactly once: the geometric
     image is each source's area coverage of the pixels (the object integrated over each
     pixel's square), convolved with the PSF sampled at the pixel centres (as
-    ``difstar.psf(..., sampling="point")``: fraction of power per pixel).
+    ``difstar.psf(..., sampling="point")``: fraction of power per pixel). That sum is the
+    pixel integral of the source convolved with the PSF only where the PSF is sampled
+    finely enough; where its bandwidth 2r·p/(λ z_R) exceeds half a cycle per pixel
+    (e.g. f/11 with 3.9 µm pixels in blue) it is off by a few tenths of the photon
+    noise of a bright capture (``benchmarks/independent_camera.py``; issue 32).
 
     Pure and jittable (``jax.jit(simulate)``, with ``grid`` static through equinox's
     filtering, e.g. ``eqx.filter_jit``); differentiable with respect to every array in
