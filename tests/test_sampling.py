@@ -155,3 +155,19 @@ def test_undersized_windows_are_refused():
         difstar.simulate(camera, scene, dataclasses.replace(g, source_window=3))
     with pytest.raises(ValueError, match=r"Grid\.pupil_window must be 0 .* or an even number"):
         dataclasses.replace(g, pupil_window=21)
+
+
+def test_the_engine_samples_the_intensity_at_its_nyquist_rate():
+    """The engine's sub-sampling q is odd (each pixel's samples centred on it) and the
+    fewest that put the intensity's bandwidth at or under half a cycle per sample; an
+    even side gains q − 1 samples so that its centre sample is the centre pixel's centre
+    (index n//2 on the axis): pixel k's samples are kq … kq + q − 1."""
+    from difstar._sampling_rules import engine_fine_crop, engine_oversample
+
+    assert [engine_oversample(b) for b in (0.1, 0.5, 0.51, 0.72, 1.5, 1.6)] == [1, 1, 3, 3, 3, 5]
+    assert engine_fine_crop((64, 63), 3) == (194, 189)
+    assert engine_fine_crop((64, 63), 1) == (64, 63)
+    for n in (6, 7):
+        fine = engine_fine_crop((n, n), 3)[0]
+        for k in range(n):  # pixel k's centre offset (k − n//2) p = centre sample's offset
+            assert (3 * k + 1 - fine // 2) == 3 * (k - n // 2)

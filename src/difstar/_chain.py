@@ -55,6 +55,7 @@ from ._sampling_rules import (
     check_sampling as check_sampling,
 )
 from ._sampling_rules import (
+    engine_fine_crop,
     engine_psf_shape,
 )
 from ._sampling_rules import (
@@ -103,13 +104,16 @@ def pixel_centres(fine, n: int, q: int):
     return fine[..., off::q, off::q][..., :n, :n]
 
 
-def sources_image(camera: Camera, scene: Scene, g: Geometry, shape) -> Array:
+def sources_image(camera: Camera, scene: Scene, g: Geometry, shape, *,
+                  pixel_pitch: float | None = None) -> Array:
     """The geometric image of the scene's sources on a centred ``shape`` pixel window,
     with the light the pupil passes (:func:`difstar.radiometry`): the one place where
-    the sources become image irradiance."""
+    the sources become image irradiance. ``pixel_pitch``: a finer sampling of the same
+    irradiance (default: the sensor's pitch)."""
     rad = radiometry(camera, scene, g)
+    pitch = camera.sensor.pixel_pitch if pixel_pitch is None else pixel_pitch
     return geometric_image(scene.sources, magnification=g.magnification,
-                           pixel_pitch=camera.sensor.pixel_pitch, shape=shape,
+                           pixel_pitch=pitch, shape=shape,
                            extended_scale=rad.extended_scale, point_scale=rad.point_scale)
 
 
@@ -197,21 +201,30 @@ def _exact_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
 
 def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
     """Linear image and PSFs through :func:`difstar.psf`'s engine: each channel's PSF at
-    the pixel centres on exactly the offsets the crop needs (nothing folded in), weighted
+    the sample centres on exactly the offsets the crop needs (nothing folded in), weighted
     over the channel's wavelengths in the spectral model, with the lens's wavefront, and
-    convolved linearly with the sources' window."""
+    convolved linearly with the sources' window.
+
+    With ``grid.oversample`` q > 1 (odd; :func:`difstar.choose_grid` sets it where the
+    PSF is undersampled at the pixels) both are sampled at pitch p/q, the q × q samples
+    of each pixel centred on it, and the image is their mean (the pixel's integral), the
+    PSF their sum: the sum over a pixel grid alone is not the pixel integral of the
+    source convolved with an undersampled PSF (``benchmarks/independent_camera.py``)."""
     from ._mft import _conv_offsets, polygon_intensities, window_rfft2
     from ._psf import psf
 
     sen = camera.sensor
-    w = grid.source_window
+    q = grid.oversample
+    pitch = sen.pixel_pitch / q
+    w = grid.source_window * q
     h, wc = grid.crop
-    kh, kw = engine_psf_shape(grid.crop, w)
-    b = sources_image(camera, scene, g, (w, w))
+    fh, fw = engine_fine_crop(grid.crop, q)
+    kh, kw = engine_psf_shape((fh, fw), w)
+    b = sources_image(camera, scene, g, (w, w), pixel_pitch=pitch)
     nh, nw = fast_length(kh + w - 1), fast_length(kw + w - 1)
-    _, _, r0, c0 = _conv_offsets(grid.crop, (w, w))
+    _, _, r0, c0 = _conv_offsets((fh, fw), (w, w))
     b_ft = window_rfft2(b, (nh, nw))
-    i0, j0 = kh // 2 - h // 2, kw // 2 - wc // 2  # the crop within the PSF's offsets
+    i0, j0 = kh // 2 - fh // 2, kw // 2 - fw // 2  # the crop within the PSF's offsets
     psfs, imgs = [], []
     for c in range(3):
         lam = sen.wavelengths[c]
@@ -222,17 +235,25 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
             lams = lam.reshape(-1)
             inten, scale = polygon_intensities(camera.lens.pupil.vertices, list(lams),
                                                z_image=g.z_exit_pupil,
-                                               pixel_pitch=sen.pixel_pitch, shape=(kh, kw))
+                                               pixel_pitch=pitch, shape=(kh, kw))
             wv = jnp.ones_like(lams) if wts is None else wts.reshape(-1)
             p = jnp.einsum("l,lhw->hw", wv * scale / jnp.sum(wv), inten)
         else:
             p = psf(camera.lens.pupil, wavelength=lam, weights=wts, z_image=g.z_exit_pupil,
-                    defocus=g.defocus, pixel_pitch=sen.pixel_pitch, shape=(kh, kw),
+                    defocus=g.defocus, pixel_pitch=pitch, shape=(kh, kw),
                     wavefront=camera.lens.wavefront, scaling=grid.scaling, plan=grid.psf_plan)
         full = jnp.fft.irfft2(jnp.fft.rfft2(p, s=(nh, nw)) * b_ft[c], s=(nh, nw))
-        imgs.append(full[r0 : r0 + h, c0 : c0 + wc])
-        psfs.append(p[i0 : i0 + h, j0 : j0 + wc])
+        imgs.append(_bin(full[r0 : r0 + h * q, c0 : c0 + wc * q], q) / (q * q))
+        psfs.append(_bin(p[i0 : i0 + h * q, j0 : j0 + wc * q], q))
     return jnp.stack(psfs), jnp.stack(imgs)
+
+
+def _bin(a: Array, q: int) -> Array:
+    """Sums of q × q blocks: (h q, w q) → (h, w)."""
+    if q == 1:
+        return a
+    h, w = a.shape[0] // q, a.shape[1] // q
+    return a.reshape(h, q, w, q).sum(axis=(1, 3))
 
 
 def _finish(camera: Camera, scene: Scene, grid: Grid, g: Geometry, psfs, image) -> Prediction:

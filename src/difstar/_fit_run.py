@@ -96,8 +96,9 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
             np.concatenate([off.lo, off.hi])))))
         src = g.source_window + 2 * reach if g.source_window else 0
         if g.method == "engine":  # difstar.psf's engine on exactly the crop's offsets
-            grid = Grid(n=g.n, crop=crop, use_defocus=use_dz, raw_only=True, method="engine",
-                        source_window=src, psf_plan=g.psf_plan)
+            grid = Grid(n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz,
+                        raw_only=True, method="engine", source_window=src,
+                        psf_plan=g.psf_plan)
         else:
             grid = Grid(n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz,
                         raw_only=True, method=g.method, pupil_window=g.pupil_window,

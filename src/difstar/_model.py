@@ -219,6 +219,9 @@ class Grid(eqx.Module):
                                          or self.source_window % 2 == 0):
             raise ValueError("Grid.method='engine' needs a psf_plan and an odd source_window "
                              "(difstar.choose_grid sets them).")
+        if self.method == "engine" and (self.oversample < 1 or self.oversample % 2 == 0):
+            raise ValueError(f"Grid.oversample must be odd for method='engine' (each pixel's "
+                             f"sub-samples centred on it); got {self.oversample}.")
         if self.method == "exact" and (self.source_window < 1 or self.source_window % 2 == 0):
             raise ValueError(
                 "Grid.source_window must be an odd number of pixels holding the sources "

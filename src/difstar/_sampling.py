@@ -20,6 +20,8 @@ from ._sampling_rules import (
     _grid_bytes,
     check_cost,
     check_sampling,
+    engine_fine_crop,
+    engine_oversample,
     engine_psf_shape,
     needs_defocus,
     pupil_window_for,
@@ -75,16 +77,22 @@ def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scal
     g = geometry_of(camera, scene)
     ext = scene_extent(camera, scene)
     window = source_window_for(ext["object_radius_px"])
-    shape = engine_psf_shape(tuple(crop), window)
     lams = np.asarray(camera.sensor.wavelengths)
+    pitch = float(camera.sensor.pixel_pitch)
+    # sub-pixels where the pixels undersample the intensity (its bandwidth 2 r/(λ z_R))
+    z_r = float(g.z_exit_pupil)
+    q = engine_oversample(2 * float(camera.lens.pupil.max_radius()) * pitch
+                          / (float(np.min(lams)) * z_r))
+    crop = tuple(int(c) for c in crop)
+    shape = engine_psf_shape(engine_fine_crop(crop, q), window * q)
     # one plan for every channel's wavelengths; each channel is one PSF call of its K
     # (their count per channel was checked with the camera)
-    plan = _plan(camera.lens.pupil, wavelength=np.ravel(lams), z_image=float(g.z_exit_pupil),
-                 defocus=float(g.defocus), pixel_pitch=camera.sensor.pixel_pitch, shape=shape,
+    plan = _plan(camera.lens.pupil, wavelength=np.ravel(lams), z_image=z_r,
+                 defocus=float(g.defocus), pixel_pitch=pitch / q, shape=shape,
                  sampling="point", accuracy=accuracy, wavefront=camera.lens.wavefront,
                  scaling=scaling, method=None, max_radius=None,
                  n_eval=lams.shape[-1] if lams.ndim == 2 else 1)
-    grid = Grid(n=max(shape), crop=tuple(int(c) for c in crop), use_defocus=plan.use_defocus,
+    grid = Grid(n=max(crop), oversample=q, crop=crop, use_defocus=plan.use_defocus,
                 raw_only=raw_only, scaling=scaling, method="engine", source_window=window,
                 psf_plan=plan)
     check_cost(camera, grid, where="choose_grid")

@@ -128,14 +128,18 @@ def simulate_bytes(camera: Camera, grid: Grid) -> int:
 
     if grid.method == "fft":
         return _grid_bytes(grid.n * grid.oversample)
-    kh, kw = engine_psf_shape(grid.crop, grid.source_window)
+    if grid.method == "engine":  # its sub-grid at pitch p/q
+        q = grid.oversample
+        kh, kw = engine_psf_shape(engine_fine_crop(grid.crop, q), grid.source_window * q)
+    else:
+        kh, kw = engine_psf_shape(grid.crop, grid.source_window)
     edges = _edges(camera.lens.pupil)
     if grid.method == "exact":
         return _grid_bytes(max(kh, kw)) + 3 * edges * kh * kw * _bytes()
     k = int(np.shape(camera.sensor.wavelengths)[-1]) if np.ndim(camera.sensor.wavelengths) == 2 \
         else 1
     return _grid_bytes(max(kh, kw)) + psf_bytes(grid.psf_plan, (kh, kw), k, edges,
-                                                float(camera.sensor.pixel_pitch))
+                                                float(camera.sensor.pixel_pitch) / q)
 
 
 def check_cost(camera: Camera, grid: Grid, where: str = "difstar.simulate") -> None:
@@ -267,6 +271,20 @@ def needs_defocus(camera: Camera, scene: Scene, *, tolerance: float = 1e-2) -> b
     z_r = float(g.z_exit_pupil)
     lam = float(jnp.min(camera.sensor.wavelengths))
     return math.pi * r * r * abs(dz) / (lam * z_r * (z_r - dz)) > tolerance
+
+
+def engine_fine_crop(crop: tuple[int, int], q: int) -> tuple[int, int]:
+    """The crop of the engine's sub-grid at pitch p/q (q odd): pixel k's samples are
+    kq … kq + q − 1 and the crop's centre sample (index n//2, on the axis) is the centre
+    pixel's centre, so an even side gains q − 1 samples."""
+    return tuple(int(n) * q + (q - 1) * (1 - int(n) % 2) for n in crop)
+
+
+def engine_oversample(bandwidth_cycles_per_pixel: float) -> int:
+    """The odd sub-sampling q of the engine's grid that samples the intensity (bandwidth
+    2 r p/(λ z_R) cycles per pixel) at or above its Nyquist rate: 1 where the pixels do."""
+    q = max(1, math.ceil(2.0 * float(bandwidth_cycles_per_pixel) - 1e-9))
+    return q if q % 2 else q + 1
 
 
 def engine_psf_shape(crop: tuple[int, int], source_window: int) -> tuple[int, int]:
