@@ -132,9 +132,10 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     pixel's square), convolved with the PSF sampled at the pixel centres (as
     ``difstar.psf(..., sampling="point")``: fraction of power per pixel). That sum is the
     pixel integral of the source convolved with the PSF only where the PSF is sampled
-    finely enough; where its bandwidth 2r·p/(λ z_R) exceeds half a cycle per pixel
-    (e.g. f/11 with 3.9 µm pixels in blue) it is off by a few tenths of the photon
-    noise of a bright capture (``benchmarks/independent_camera.py``; issue 32).
+    finely enough: where its bandwidth 2r·p/(λ z_R) exceeds half a cycle per pixel
+    (e.g. f/11 with 3.9 µm pixels in blue), ``choose_grid`` gives the engine's grid an
+    odd ``oversample`` q and both are sampled at p/q, each pixel the mean of its q × q
+    samples (``benchmarks/independent_camera.py``).
 
     Pure and jittable (``jax.jit(simulate)``, with ``grid`` static through equinox's
     filtering, e.g. ``eqx.filter_jit``); differentiable with respect to every array in
