@@ -8,7 +8,7 @@ sampled at the pixel centres. At f/11 with 3.9 µm pixels the intensity's bandwi
 0.72 cycles per pixel in blue, above the pixel grid's Nyquist limit (0.5), so that sum
 is not the pixel integral of the source convolved with the PSF. ``choose_grid`` now
 samples the engine's grid q times finer where the pixels undersample the intensity
-(``difstar._sampling_rules.engine_oversample``: q = 3 here) and ``simulate`` averages
+(``Grid.oversample``: q = 3 here) and ``simulate`` averages
 each pixel's q × q samples. The generator integrates on a 4 × 4 sub-pixel grid. Rows:
 q forced to 1 (the chain before the rule), choose_grid's own q, and q forced to 5.
 
@@ -38,7 +38,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import raw_generator as G  # noqa: E402
 
 import difstar  # noqa: E402
-import difstar._sampling as S  # noqa: E402  (to force the sub-sampling q)
 
 FRAME = 64
 PEAK_E = 17000.0
@@ -61,13 +60,7 @@ def difstar_image(camp, cfg, *, q: int | None, source_scale: float = 1.0) -> np.
     scene = difstar.Scene(object_distance=cfg.object_distance,
                           sources=(difstar.DiscSource(camp.source_radius * source_scale),),
                           exposure_time=0.01)
-    rule = S.engine_oversample
-    if q is not None:
-        S.engine_oversample = lambda bandwidth: q
-    try:
-        grid = difstar.choose_grid(camera, scene, crop=(FRAME, FRAME))
-    finally:
-        S.engine_oversample = rule
+    grid = difstar.choose_grid(camera, scene, crop=(FRAME, FRAME), oversample=q)
     return np.asarray(difstar.simulate(camera, scene, grid).image), grid.oversample
 
 

@@ -171,3 +171,19 @@ def test_the_engine_samples_the_intensity_at_its_nyquist_rate():
         fine = engine_fine_crop((n, n), 3)[0]
         for k in range(n):  # pixel k's centre offset (k − n//2) p = centre sample's offset
             assert (3 * k + 1 - fine // 2) == 3 * (k - n // 2)
+
+
+def test_the_engine_grid_takes_an_odd_oversample_and_refuses_an_even_one():
+    """f/11 with 3.9 µm pixels: the blue intensity's bandwidth is 0.72 cycles per pixel,
+    so choose_grid samples the engine's grid 3 times finer; oversample overrides it with
+    an odd number and refuses an even one, naming the fix."""
+    lens = difstar.Lens(difstar.CurvedIris(9, 2.2e-3, 0.5), focal_length=0.05,
+                        focus_distance=1.5, wavefront=difstar.Zernike({11: 1e-7}, radius=2.2e-3))
+    camera = difstar.Camera(lens, difstar.Sensor(pixel_pitch=3.917e-6,
+                                                 wavelengths=(6.1e-7, 5.35e-7, 4.6e-7)))
+    scene = difstar.Scene(object_distance=1.5, sources=(difstar.DiscSource(2.5e-4),),
+                          exposure_time=0.01)
+    assert difstar.choose_grid(camera, scene, crop=(16, 16)).oversample == 3
+    assert difstar.choose_grid(camera, scene, crop=(16, 16), oversample=1).oversample == 1
+    with pytest.raises(ValueError, match="oversample = 2 .* odd number"):
+        difstar.choose_grid(camera, scene, crop=(16, 16), oversample=2)

@@ -69,9 +69,12 @@ def padding_for_accuracy(accuracy: float | None) -> float:
     return max(_MIN_PADDING, (_CAL_A / acc) ** (1.0 / _CAL_ALPHA))
 
 
-def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scaling) -> Grid:
+def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scaling,
+                 oversample=None) -> Grid:
     """The grid of ``method="engine"``: the PSF through :func:`difstar.psf`'s engine on the
-    offsets the crop needs, planned here (outside jit) for every channel's wavelengths."""
+    offsets the crop needs, planned here (outside jit) for every channel's wavelengths,
+    at pitch p/q where the pixels undersample the intensity (``oversample`` q, odd,
+    overrides :func:`engine_oversample`'s choice)."""
     from ._psf import _plan
 
     g = geometry_of(camera, scene)
@@ -82,7 +85,11 @@ def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scal
     # sub-pixels where the pixels undersample the intensity (its bandwidth 2 r/(λ z_R))
     z_r = float(g.z_exit_pupil)
     q = engine_oversample(2 * float(camera.lens.pupil.max_radius()) * pitch
-                          / (float(np.min(lams)) * z_r))
+                          / (float(np.min(lams)) * z_r)) if oversample is None else oversample
+    if q % 2 == 0:
+        raise ValueError(f"choose_grid: oversample = {q} for the PSF engine's grid; give an "
+                         "odd number (each pixel's samples are centred on it), e.g. "
+                         f"{q + 1}.")
     crop = tuple(int(c) for c in crop)
     shape = engine_psf_shape(engine_fine_crop(crop, q), window * q)
     # one plan for every channel's wavelengths; each channel is one PSF call of its K
@@ -124,6 +131,9 @@ def choose_grid(
 
     ``n`` and ``oversample`` override the choice; an override that breaks a rule raises
     :class:`difstar.SamplingError` naming the rule and the value that would satisfy it.
+    On the PSF engine's grid (lens wavefronts, spectral sensors) ``oversample`` is the odd
+    number of samples a side per pixel (default: the fewest at the intensity's Nyquist
+    rate; each pixel is their mean).
 
     ``method`` (default: chosen) is "exact" for an in-focus scene with a polygonal pupil
     — the closed-form PSF on exactly the offsets the crop needs, no grid and no aliasing
@@ -171,7 +181,7 @@ def choose_grid(
                       else "fft")
     if method == "engine":
         return _engine_grid(camera, scene, crop, accuracy=accuracy, raw_only=raw_only,
-                            scaling=scaling)
+                            scaling=scaling, oversample=oversample)
     if spectral or aberrated:
         raise ValueError(
             f"choose_grid: method={method!r} models one wavelength per channel and no wavefront "
