@@ -17,7 +17,7 @@ from ._colour import render_srgb
 from ._custom_types import Array
 from ._fft_size import fast_length
 from ._geometry import Geometry
-from ._grid_psf import intensity_from_atf
+from ._grid_psf import bin_pixels, intensity_from_atf
 from ._image import DiscSource as DiscSource
 from ._image import PointSource as PointSource
 from ._image import convolve, geometric_image, image_spectrum
@@ -244,17 +244,9 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
                     defocus=g.defocus, pixel_pitch=pitch, shape=(kh, kw),
                     wavefront=camera.lens.wavefront, scaling=grid.scaling, plan=grid.psf_plan)
         full = jnp.fft.irfft2(jnp.fft.rfft2(p, s=(nh, nw)) * b_ft[c], s=(nh, nw))
-        imgs.append(_bin(full[r0 : r0 + h * q, c0 : c0 + wc * q], q) / (q * q))
-        psfs.append(_bin(p[i0 : i0 + h * q, j0 : j0 + wc * q], q))
+        imgs.append(bin_pixels(full[r0 : r0 + h * q, c0 : c0 + wc * q], q) / (q * q))
+        psfs.append(bin_pixels(p[i0 : i0 + h * q, j0 : j0 + wc * q], q))
     return jnp.stack(psfs), jnp.stack(imgs)
-
-
-def _bin(a: Array, q: int) -> Array:
-    """Sums of q × q blocks: (h q, w q) → (h, w)."""
-    if q == 1:
-        return a
-    h, w = a.shape[0] // q, a.shape[1] // q
-    return a.reshape(h, q, w, q).sum(axis=(1, 3))
 
 
 def _finish(camera: Camera, scene: Scene, grid: Grid, g: Geometry, psfs, image) -> Prediction:
