@@ -260,9 +260,12 @@ def cfa_channel(pattern: str, shape) -> np.ndarray:
     return np.tile(tile, (h // 2 + 1, w // 2 + 1))[:h, :w]
 
 
-def make_captures(camp: Campaign, *, seed: int = 0) -> tuple[list[dict], dict]:
+def make_captures(camp: Campaign, *, seed: int = 0, noise: bool = True
+                  ) -> tuple[list[dict], dict]:
     """Every capture of the campaign: dicts with ``name``, ``configuration``,
-    ``exposure_time``, ``raw`` (uint16 mosaic in DN); and the truth (SI units)."""
+    ``exposure_time``, ``raw`` (uint16 mosaic in DN); and the truth (SI units).
+    ``noise=False``: the expected photo-electrons, no read noise (still quantised and
+    clipped): a fit to these measures the models' difference, not the noise's."""
     rng = np.random.default_rng(seed)
     sen = camp.sensor
     chan = cfa_channel(sen.pattern, camp.frame)
@@ -276,9 +279,10 @@ def make_captures(camp: Campaign, *, seed: int = 0) -> tuple[list[dict], dict]:
         mosaic = np.take_along_axis(planes, chan[None], axis=0)[0]
         q = np.asarray(sen.quantum_scale)[chan]
         for t in cfg.exposure_times:
-            electrons = rng.poisson(np.maximum(mosaic * q * t, 0.0))
-            dn = sen.black_level + electrons / sen.gain_e_per_dn \
-                + rng.normal(0.0, sen.read_noise_dn, mosaic.shape)
+            expected = np.maximum(mosaic * q * t, 0.0)
+            electrons = rng.poisson(expected) if noise else expected
+            read = rng.normal(0.0, sen.read_noise_dn, mosaic.shape) if noise else 0.0
+            dn = sen.black_level + electrons / sen.gain_e_per_dn + read
             raw = np.clip(np.round(dn), 0, sen.white_level).astype(np.uint16)
             tag = f"{t:.4g}".replace(".", "p")
             caps.append({"name": f"{cfg.name}_t{tag}s", "configuration": cfg.name,
@@ -316,7 +320,8 @@ def bracket(camp: Campaign, cfg: Configuration, *, steps=(0.25, 1.0, 4.0),
     return tuple(float(f"{t_mid * s:.3g}") for s in steps)
 
 
-def write_campaign(out, camp: Campaign = CURVED_IRIS, *, seed: int = 0, roi=(96, 96)) -> None:
+def write_campaign(out, camp: Campaign = CURVED_IRIS, *, seed: int = 0, roi=(96, 96),
+                   noise: bool = True) -> None:
     """Write the captures (DNG, via difstar.io.write_dng: files only) and a RAW-fit
     manifest with the truth to the new folder ``out``."""
     import dataclasses
@@ -330,7 +335,7 @@ def write_campaign(out, camp: Campaign = CURVED_IRIS, *, seed: int = 0, roi=(96,
     cfgs = tuple(dataclasses.replace(c, exposure_times=bracket(camp, c))
                  for c in camp.configurations)
     camp = dataclasses.replace(camp, configurations=cfgs)
-    caps, truth = make_captures(camp, seed=seed)
+    caps, truth = make_captures(camp, seed=seed, noise=noise)
     sen, lens, iris = camp.sensor, camp.lens, camp.iris
     entries = []
     by_cfg = {c.name: c for c in cfgs}
@@ -408,5 +413,8 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description="write the curved-iris RAW campaign")
     ap.add_argument("--out", required=True, help="a new folder")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--noiseless", action="store_true",
+                    help="expected signal, no photon or read noise (a fit then measures "
+                         "the models' difference)")
     a = ap.parse_args()
-    write_campaign(a.out, seed=a.seed)
+    write_campaign(a.out, seed=a.seed, noise=not a.noiseless)

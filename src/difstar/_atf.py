@@ -49,6 +49,14 @@ def pupil_scale(wavelength, z_image, defocus, scaling: str = "fresnel"):
     raise ValueError(f"scaling must be one of {SCALINGS}; got {scaling!r}.")
 
 
+def intensity_bandwidth(pupil_radius, wavelength, z_image, defocus, pixel_pitch,
+                        scaling: str = "fresnel"):
+    """The intensity's bandwidth in cycles per pixel: its spectrum (the OTF) vanishes
+    beyond 2 r / (the pupil scale), here times the pixel pitch. Over 0.5 the pixels
+    undersample the intensity."""
+    return 2 * pupil_radius * pixel_pitch / pupil_scale(wavelength, z_image, defocus, scaling)
+
+
 def defocus_phase_coefficient(wavelength, z_image, defocus, scaling: str = "fresnel"):
     """c such that the ATF phase is c |f|² (radians per (cycles/metre)²)."""
     z_i = z_image - defocus

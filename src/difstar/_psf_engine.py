@@ -42,7 +42,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._atf import defocus_phase_coefficient, pupil_scale
+from ._atf import defocus_phase_coefficient, intensity_bandwidth, pupil_scale
 from ._custom_types import Array, Float
 
 
@@ -155,8 +155,8 @@ def plan_psf(
     r, z_r, dz, p = float(pupil_radius), float(z_image), float(defocus), float(pixel_pitch)
     h, w = (int(s) for s in shape)
     scale_min = float(pupil_scale(lam_min, z_r, dz, scaling))
-    # the intensity's bandwidth, cycles per pixel: 2 r / (λ z) × p
-    nodes = 1 if sampling == "point" else nodes_for(2 * r * p / scale_min, accuracy)
+    nodes = 1 if sampling == "point" else nodes_for(
+        intensity_bandwidth(r, lam_min, z_r, dz, p, scaling), accuracy)
     # defocus phase at the pupil's edge (radians): model it only where it matters
     peak = max(abs(defocus_phase_coefficient(lam, z_r, dz, scaling))
                * (r / float(pupil_scale(lam, z_r, dz, scaling))) ** 2 for lam in lams)

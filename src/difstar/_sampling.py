@@ -13,6 +13,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from ._atf import intensity_bandwidth
 from ._fft_size import fast_length as fast_length
 from ._model import Camera, Grid, Scene, geometry_of
 from ._psf_engine import SamplingError
@@ -82,10 +83,11 @@ def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scal
     window = source_window_for(ext["object_radius_px"])
     lams = np.asarray(camera.sensor.wavelengths)
     pitch = float(camera.sensor.pixel_pitch)
-    # sub-pixels where the pixels undersample the intensity (its bandwidth 2 r/(λ z_R))
+    # sub-pixels where the pixels undersample the intensity
     z_r = float(g.z_exit_pupil)
-    q = engine_oversample(2 * float(camera.lens.pupil.max_radius()) * pitch
-                          / (float(np.min(lams)) * z_r)) if oversample is None else oversample
+    q = engine_oversample(intensity_bandwidth(
+        float(camera.lens.pupil.max_radius()), float(np.min(lams)), z_r, float(g.defocus),
+        pitch, scaling)) if oversample is None else oversample
     if q % 2 == 0:
         raise ValueError(f"choose_grid: oversample = {q} for the PSF engine's grid; give an "
                          "odd number (each pixel's samples are centred on it), e.g. "
