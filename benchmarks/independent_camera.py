@@ -19,6 +19,14 @@ Noiseless images: chi2 = 0 is perfect agreement; the campaign's fit has about 28
 pixels per configuration, so chi2 of a few hundred here biases the fitted parameters by
 several standard errors.
 
+Second table: the grid ``choose_grid`` picks by default for a straight 9-blade iris
+without aberration (the camera the exact and fft paths serve), from f/22, where the
+pixels sample the intensity (bandwidth under 0.5 cycles per pixel) and the pixel-centre
+paths stay, to f/1.8 (4.6 cycles per pixel), where it now picks the engine's sub-pixel
+grid; error: RMS difference over the window relative to the peak, worst channel, after
+one radiometric constant per channel; the generator's sub-grid is at or under the
+intensity's Nyquist rate (4², 5² at f/4, 11² at f/1.8).
+
     python benchmarks/independent_camera.py
 """
 
@@ -36,32 +44,11 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import raw_generator as G  # noqa: E402
-
-import difstar  # noqa: E402
+from generator_twins import shape_error, twin_image  # noqa: E402
 
 FRAME = 64
 PEAK_E = 17000.0
 READ_E2 = 40.0
-
-
-def difstar_image(camp, cfg, *, q: int | None, source_scale: float = 1.0) -> np.ndarray:
-    """difstar's linear image of the campaign's scene through ``simulate`` on the grid
-    ``choose_grid`` makes, its sub-sampling q forced (None: choose_grid's own)."""
-    iris, sen = camp.iris, camp.sensor
-    wave = difstar.Zernike({11: iris.spherical}, radius=iris.zernike_radius)
-    lens = difstar.Lens(
-        difstar.CurvedIris(iris.n, iris.circumradius, iris.curvature, rotation=iris.rotation),
-        focal_length=camp.lens.focal_length, focus_distance=cfg.focus_distance,
-        principal_separation=camp.lens.principal_separation,
-        pupil_magnification=camp.lens.pupil_magnification, wavefront=wave)
-    camera = difstar.Camera(lens, difstar.Sensor(pixel_pitch=sen.pixel_pitch,
-                                                 pattern=sen.pattern,
-                                                 wavelengths=sen.wavelengths))
-    scene = difstar.Scene(object_distance=cfg.object_distance,
-                          sources=(difstar.DiscSource(camp.source_radius * source_scale),),
-                          exposure_time=0.01)
-    grid = difstar.choose_grid(camera, scene, crop=(FRAME, FRAME), oversample=q)
-    return np.asarray(difstar.simulate(camera, scene, grid).image), grid.oversample
 
 
 def chi2(gen: np.ndarray, model: np.ndarray) -> float:
@@ -88,9 +75,50 @@ def main() -> None:
                      ("choose_grid's own", None), ("finer", 5)):
         for scale in (1.0, 0.95):
             t0 = time.perf_counter()
-            img, used = difstar_image(camp, cfg, q=q, source_scale=scale)
+            img, grid, _ = twin_image(camp, cfg, oversample=q, source_scale=scale)
             dt = time.perf_counter() - t0
-            print(f"| {label} | {used} | {scale:.2f} × true | {chi2(gen, img):.1f} | {dt:.1f} |")
+            print(f"| {label} | {grid.oversample} | {scale:.2f} × true "
+                  f"| {chi2(gen, img):.1f} | {dt:.1f} |")
+
+
+def f_number_table() -> None:
+    """The default grid against the pixel-centre paths, straight 9-blade iris, no
+    aberration, from f/22 (pixels sample the intensity) to f/1.8 (4.9 cycles per pixel)."""
+
+    print("\n| f-number | focus | bandwidth, cycles/px (blue) | pixel centres (exact or fft) "
+          "| error | default grid | error | ratio |")
+    print("|---:|---|---:|---|---:|---|---:|---:|")
+    for f_number, names, frame, ss in ((22.0, ("focused", "near", "far"), 64, 4),
+                                       (11.0, ("focused", "near", "far"), 64, 4),
+                                       (4.0, ("focused", "near", "far"), 64, 5),
+                                       (1.8, ("focused",), 32, 11)):
+        cfgs = {c.name: dataclasses.replace(c, source_position=(frame // 2, frame // 2))
+                for c in G.CURVED_IRIS.configurations}
+        iris = G.Iris(circumradius=G.CURVED_IRIS.lens.focal_length / (2 * f_number),
+                      curvature=0.0, spherical=0.0)
+        for name in names:
+            cfg = cfgs[name]
+            camp = G.Campaign(frame=(frame, frame), configurations=(cfg,), iris=iris,
+                              fft_size=1024, pixel_supersample=ss)
+            gen = np.stack([G.channel_image(camp, cfg, c) for c in range(3)])
+            old, og, _ = twin_image(camp, cfg, straight=True,
+                                    method="exact" if name == "focused" else "fft")
+            new, ng, _ = twin_image(camp, cfg, straight=True)
+            e_old, e_new = shape_error(gen, old), shape_error(gen, new)
+            bw = _bandwidth(camp, cfg)
+            print(f"| {f_number:g} | {name} | {bw:.2f} | {og.method} (q = {og.oversample}) "
+                  f"| {e_old:.2e} | {ng.method} (q = {ng.oversample}) | {e_new:.2e} "
+                  f"| {e_old / e_new:.1f} |", flush=True)
+
+
+def _bandwidth(camp, cfg) -> float:
+    """2 r p / (λ_blue z_R) for the campaign's lens at this focus (the generator's own
+    geometry)."""
+    g = G.lens_geometry(camp.lens, cfg.focus_distance, cfg.object_distance)
+    return 2 * camp.iris.circumradius * camp.sensor.pixel_pitch / (
+        min(camp.sensor.wavelengths) * g["z_R"])
+
 
 if __name__ == "__main__":
     main()
+    f_number_table()

@@ -17,7 +17,8 @@ difstar's model makes one:
   covered part.
 * **Wavefront**: exp(i k (W_dz + W_ab)), W_dz = ½(1/z_i − 1/z_R)|ξ|², W_ab =
   c11·√5·(6ρ⁴ − 6ρ² + 1) with ρ = |ξ| / R_zernike (Noll 11, unit RMS over that circle).
-* **Field**: a zero-padded FFT with the kernel exp(+2πi x·ξ/(λ z_R)); the intensity on a
+* **Field**: a zero-padded FFT with the kernel exp(+2πi x·ξ/(λ z_R)), divided on its
+  principal period by the transform of the cells' point means (a Dirichlet kernel); the intensity on a
   sub-pixel grid (``pixel_supersample``² samples per pixel), normalised so that it sums
   to the fraction of the pupil's power, then **summed over each pixel's area** (box
   integration, no sinc model).
@@ -167,9 +168,10 @@ def iris_area(iris: Iris) -> float:
 # ----------------------------------------------------------------------- the field
 
 def pupil_function(iris: Iris, *, wavelength: float, z_r: float, z_i: float,
-                   spacing: float, size: int, supersample: int) -> np.ndarray:
+                   spacing: float, size: int, supersample: int) -> tuple[np.ndarray, float]:
     """Cell means of P·exp(ikW) on a ``size``² grid of cell ``spacing`` (centred on the
-    axis at index size//2), by ``supersample``² point tests per cell."""
+    axis at index size//2), by ``supersample``² point tests per cell; and the pupil's
+    power in cells, Σ of the cells' mean |P|² (their covered fractions)."""
     k = 2 * math.pi / wavelength
     half = int(math.ceil(iris.circumradius * 1.01 / spacing)) + 2
     idx = np.arange(-half, half + 1)
@@ -188,7 +190,7 @@ def pupil_function(iris: Iris, *, wavelength: float, z_r: float, z_i: float,
     out = np.zeros((size, size), complex)
     c = size // 2
     out[c - half: c + half + 1, c - half: c + half + 1] = cells
-    return out
+    return out, float(np.count_nonzero(inside)) / supersample ** 2
 
 
 def intensity(iris: Iris, *, wavelength: float, z_r: float, z_i: float,
@@ -198,12 +200,24 @@ def intensity(iris: Iris, *, wavelength: float, z_r: float, z_i: float,
     at index fft_size//2), each sample the fraction of the pupil's power in its cell."""
     du = pixel_pitch / pixel_supersample
     spacing = wavelength * z_r / (fft_size * du)
-    p = pupil_function(iris, wavelength=wavelength, z_r=z_r, z_i=z_i, spacing=spacing,
+    p, power = pupil_function(iris, wavelength=wavelength, z_r=z_r, z_i=z_i, spacing=spacing,
                        size=fft_size, supersample=pupil_supersample)
     # kernel exp(+2πi x·ξ/(λ z_R)) = inverse DFT; axes: row index ↔ −y in both planes
     u = np.fft.fftshift(np.fft.ifft2(np.fft.ifftshift(p)))
-    # Parseval: Σ|ifft2(p)|² = Σ|p|²/N², so each sample's fraction of the power is
-    return np.abs(u) ** 2 * (fft_size * fft_size) / np.sum(np.abs(p) ** 2)
+    # each cell holds the mean of s² point values, s a side: a sum of s shifted copies
+    # of the pupil per axis, whose transform multiplies the field by the Dirichlet
+    # kernel D(x) = sin(πx/L) / (s sin(πx/(sL))) (L = N du the period); divided out on
+    # the principal period (x = k du, |k| ≤ N/2), else a defocused blur dims towards
+    # its edge by about (πx/L)²/3 (2 % of the peak at x = L/13)
+    s = pupil_supersample
+    t = np.pi * (np.arange(fft_size) - fft_size // 2) / fft_size  # π x / L
+    d = np.ones(fft_size)
+    nz = t != 0
+    d[nz] = np.sin(t[nz]) / (s * np.sin(t[nz] / s))
+    u = u / (d[:, None] * d[None, :])
+    # U(x) = a N² u with a the cell's area, and a du² = (λ z_R)²/N²: the power through a
+    # sample's area du² is |U|² du²/(λ z_R)², its fraction of the pupil's a·power is
+    return np.abs(u) ** 2 * (fft_size * fft_size) / power
 
 
 def disc_image(radius: float, shape, centre_rc, *, spacing: float, supersample: int = 4

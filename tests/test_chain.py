@@ -95,7 +95,10 @@ def test_undersampled_grid_override_errors_with_fix():
     with pytest.raises(difstar.SamplingError, match=r"rule 1.*oversample >= 5"):
         difstar.simulate(camera, scene, difstar.Grid(n=64, crop=(32, 32), oversample=1))
     assert choose_grid(camera, scene, crop=(32, 32), method="fft").oversample == 5
-    assert choose_grid(camera, scene, crop=(32, 32)).oversample == 1  # exact: no grid
+    # by default the pixels, which undersample the intensity (4.9 cycles per pixel in
+    # blue), are integrated on the engine's odd sub-grid at the intensity's Nyquist rate
+    grid = choose_grid(camera, scene, crop=(32, 32))
+    assert grid.method == "engine" and grid.oversample == 11
 
 
 def test_fast_length():

@@ -70,10 +70,15 @@ def _check_case(camera, scene, crop, *, accuracy, ref_padding, tol, ref_oversamp
 
 
 def test_f1_8_undersampled_pixels_get_oversampled():
+    """f/1.8 with 3.9 µm pixels: the pixel grid undersamples the intensity, so the chain
+    runs on the engine's sub-pixel grid (its accuracy against an independent camera:
+    tests/test_independent_camera.py); finite output and gradients, and the rule-1 fft
+    grid at finer padding agrees outside the core to its own sampling error (it samples
+    the PSF at the pixel centres: 9 % there, relative RMS beyond the core)."""
     camera = _camera(1.8)
     grid, _ = _check_case(camera, _scene(), (32, 32), accuracy=3e-2, ref_padding=4.0,
-                          ref_oversample=None, tol=3e-2)
-    assert grid.oversample >= 4  # rule 1 at 450 nm
+                          ref_oversample=None, tol=0.15)
+    assert grid.method == "engine" and grid.oversample >= 9  # 2 × 4.9 cycles/px at 450 nm
 
 
 @pytest.mark.slow

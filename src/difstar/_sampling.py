@@ -61,6 +61,17 @@ def required_oversample(camera: Camera, scene: Scene) -> int:
     return max(1, math.ceil(camera.sensor.pixel_pitch / (lam * nw) - 1e-9))
 
 
+def pixel_bandwidth(camera: Camera, scene: Scene, scaling: str = "fresnel") -> float:
+    """The intensity's bandwidth at the shortest wavelength, cycles per pixel. Over 0.5
+    the pixels undersample it: the PSF at the pixel centres is then not the pixel
+    integral, and only the engine's sub-pixel grid (:func:`engine_oversample`) models
+    the pixels."""
+    g = geometry_of(camera, scene)
+    return float(intensity_bandwidth(
+        float(camera.lens.pupil.max_radius()), float(jnp.min(camera.sensor.wavelengths)),
+        float(g.z_exit_pupil), float(g.defocus), float(camera.sensor.pixel_pitch), scaling))
+
+
 def padding_for_accuracy(accuracy: float | None) -> float:
     """The padding (fraction of the crop added as a guard band) whose measured error on
     the paper's scenes is at most ``accuracy`` (relative RMS outside the core)."""
@@ -85,9 +96,8 @@ def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scal
     pitch = float(camera.sensor.pixel_pitch)
     # sub-pixels where the pixels undersample the intensity
     z_r = float(g.z_exit_pupil)
-    q = engine_oversample(intensity_bandwidth(
-        float(camera.lens.pupil.max_radius()), float(np.min(lams)), z_r, float(g.defocus),
-        pitch, scaling)) if oversample is None else oversample
+    q = (engine_oversample(pixel_bandwidth(camera, scene, scaling)) if oversample is None
+         else oversample)
     if q % 2 == 0:
         raise ValueError(f"choose_grid: oversample = {q} for the PSF engine's grid; give an "
                          "odd number (each pixel's samples are centred on it), e.g. "
@@ -137,9 +147,12 @@ def choose_grid(
     number of samples a side per pixel (default: the fewest at the intensity's Nyquist
     rate; each pixel is their mean).
 
-    ``method`` (default: chosen) is "exact" for an in-focus scene with a polygonal pupil
-    — the closed-form PSF on exactly the offsets the crop needs, no grid and no aliasing
-    (then ``n``, ``padding`` and ``accuracy`` do not apply) — and "fft" otherwise.
+    ``method`` (default: chosen) is "engine" for a lens wavefront, a spectral sensor, or
+    pixels that undersample the intensity (:func:`pixel_bandwidth` over 0.5, unless
+    ``n``, ``padding`` or ``oversample`` is given); otherwise "exact" for an in-focus
+    scene with a polygonal pupil — the closed-form PSF on exactly the offsets the crop
+    needs, no grid and no aliasing (then ``n``, ``padding`` and ``accuracy`` do not
+    apply) — and "fft" otherwise.
     """
     from ._psf import _edges
     from ._pupil import Polygon, RegularPolygon
@@ -175,8 +188,13 @@ def choose_grid(
     # the closed form's cost grows with the edges: above MAX_EXACT_EDGES, the fft grid
     few_edges = _edges(camera.lens.pupil) <= MAX_EXACT_EDGES
     exact_ok = in_focus and polygon and few_edges and not spectral and not aberrated
+    # pixels that undersample the intensity: the exact and fft paths sample the PSF at
+    # the pixel centres, 5-15x farther from a pixel-integrating camera than the engine's
+    # sub-pixel grid (BENCHMARKS.md, "The chain against an independent camera")
+    undersampled = pixel_bandwidth(camera, scene, scaling) > 0.5
     if method is None:
-        if spectral or aberrated:
+        if spectral or aberrated or (undersampled and n is None and padding is None
+                                     and oversample is None):
             method = "engine"
         else:
             method = ("exact" if exact_ok and n is None and padding is None and accuracy is None
