@@ -187,3 +187,32 @@ def test_the_engine_grid_takes_an_odd_oversample_and_refuses_an_even_one():
     assert difstar.choose_grid(camera, scene, crop=(16, 16), oversample=1).oversample == 1
     with pytest.raises(ValueError, match="oversample = 2 .* odd number"):
         difstar.choose_grid(camera, scene, crop=(16, 16), oversample=2)
+
+
+def test_pixels_that_undersample_the_intensity_choose_the_engine():
+    """Without a wavefront or spectral sensor, the pixel-centre paths serve only pixels
+    that sample the intensity (bandwidth 2rp/(λ z_R) at most 0.5 cycles per pixel, f/22
+    here: 0.37, computed by hand); at f/11 (0.75) choose_grid picks the engine's
+    sub-pixel grid, unless the caller fixes the fft grid (n, padding or oversample)."""
+    from difstar._sampling import pixel_bandwidth
+
+    def camera_at(f_number):
+        lens = difstar.Lens(difstar.RegularPolygon(9, 0.05 / (2 * f_number)),
+                            focal_length=0.05, focus_distance=1.5)
+        return difstar.Camera(lens, difstar.Sensor(pixel_pitch=3.917e-6,
+                                                   wavelengths=(6.1e-7, 5.35e-7, 4.5e-7)))
+
+    for config, distance in (("focused", 1.5), ("defocused", 1.2)):
+        scene = difstar.Scene(object_distance=distance, sources=(difstar.DiscSource(2.5e-4),),
+                              exposure_time=0.01)
+        slow, fast = camera_at(22.0), camera_at(11.0)
+        g = difstar.geometry_of(slow, scene)
+        by_hand = 2 * (0.05 / 44) * 3.917e-6 / (4.5e-7 * float(g.z_exit_pupil))
+        assert pixel_bandwidth(slow, scene) == pytest.approx(by_hand, rel=1e-12)
+        assert 0.3 < by_hand < 0.5 < pixel_bandwidth(fast, scene) < 1
+        expected = "exact" if config == "focused" else "fft"
+        assert choose_grid(slow, scene, crop=(16, 16)).method == expected
+        grid = choose_grid(fast, scene, crop=(16, 16))
+        assert (grid.method, grid.oversample) == ("engine", 3)
+        assert choose_grid(fast, scene, crop=(16, 16), padding=2.0).method == "fft"
+        assert choose_grid(fast, scene, crop=(16, 16), oversample=1).method in ("exact", "fft")
