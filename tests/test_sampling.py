@@ -216,3 +216,22 @@ def test_pixels_that_undersample_the_intensity_choose_the_engine():
         assert (grid.method, grid.oversample) == ("engine", 3)
         assert choose_grid(fast, scene, crop=(16, 16), padding=2.0).method == "fft"
         assert choose_grid(fast, scene, crop=(16, 16), oversample=1).method in ("exact", "fft")
+
+
+def test_a_grid_describes_its_own_path():
+    """The one line the command line logs for a grid: the exact path without a grid
+    size, the engine with its samples per pixel, the fft path with its n."""
+    camera, scene = _scene("focused")
+    exact = choose_grid(camera, scene, crop=(16, 16))
+    assert exact.describe().startswith("exact in-focus path") and "n =" not in exact.describe()
+    fft = choose_grid(*_scene("defocused"), crop=(16, 16))
+    assert fft.describe().startswith(f"FFT grid n = {fft.n}, oversample = {fft.oversample}")
+    lens = difstar.Lens(difstar.RegularPolygon(9, 0.05 / 22), focal_length=0.05,
+                        focus_distance=1.5)
+    fast = difstar.Camera(lens, difstar.Sensor(pixel_pitch=3.917e-6,
+                                               wavelengths=(6.1e-7, 5.35e-7, 4.5e-7)))
+    sc = difstar.Scene(object_distance=1.5, sources=(difstar.DiscSource(2.5e-4),),
+                       exposure_time=0.01)
+    engine = choose_grid(fast, sc, crop=(16, 16))
+    assert engine.describe().startswith("PSF engine (") and "3 × 3 samples per pixel" in \
+        engine.describe() and "n =" not in engine.describe()

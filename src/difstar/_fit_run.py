@@ -392,8 +392,7 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
     u0 = photometric_start(model, caps, u0)
     if verbose:
         _log(f"difstar fit: {len(model.captures)} captures, {model.n_free} free parameters, "
-             f"grids " + ", ".join(f"{c.name}: n = {c.grid.n}, crop = {c.grid.crop}"
-                                    for c in model.configs))
+             "grids " + "; ".join(f"{c.name}: {c.grid.describe()}" for c in model.configs))
     u, stages, args = run_stages(fitter, model, caps, man.noise, u0, man.solver,
                                  verbose=verbose)
     t0 = time.perf_counter()
@@ -462,7 +461,7 @@ def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
             padding=syn["padding"], values=syn["truth"],
         )
         model = model.with_values(syn["truth"])
-        _log("difstar synth: grids " + ", ".join(f"{c.name}: n = {c.grid.n}"
+        _log("difstar synth: grids " + "; ".join(f"{c.name}: {c.grid.describe()}"
                                                  for c in model.configs))
         pred = Fitter(model).predict(to_unconstrained(model))
         rng = np.random.default_rng(int(syn["seed"]))

@@ -250,6 +250,20 @@ class Grid(eqx.Module):
         if self.scaling not in SCALINGS:
             raise ValueError(f"Grid.scaling must be one of {SCALINGS}; got {self.scaling!r}.")
 
+    def describe(self) -> str:
+        """One line for logs: the path and what sizes it (``n`` is the FFT grid's side
+        only on the fft path)."""
+        if self.method == "exact":
+            return (f"exact in-focus path (closed-form PSF, no grid), crop = {self.crop}, "
+                    f"source window {self.source_window} px")
+        defocus = "on" if self.use_defocus else "off (Δz negligible)"
+        if self.method == "engine":
+            q = self.oversample
+            return (f"PSF engine ({self.psf_plan.method}), {q} × {q} samples per pixel, "
+                    f"crop = {self.crop}, defocus phase {defocus}")
+        return (f"FFT grid n = {self.n}, oversample = {self.oversample}, crop = {self.crop}, "
+                f"defocus phase {defocus}")
+
 
 class Prediction(eqx.Module):
     """Everything ``simulate`` returns; images are cropped to ``grid.crop``.

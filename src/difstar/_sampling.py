@@ -189,7 +189,7 @@ def choose_grid(
     few_edges = _edges(camera.lens.pupil) <= MAX_EXACT_EDGES
     exact_ok = in_focus and polygon and few_edges and not spectral and not aberrated
     # pixels that undersample the intensity: the exact and fft paths sample the PSF at
-    # the pixel centres, 5-15x farther from a pixel-integrating camera than the engine's
+    # the pixel centres, 15-170x farther from a pixel-integrating camera than the engine's
     # sub-pixel grid (BENCHMARKS.md, "The chain against an independent camera")
     undersampled = pixel_bandwidth(camera, scene, scaling) > 0.5
     if method is None:

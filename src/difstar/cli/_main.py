@@ -70,12 +70,7 @@ def run_predict(doc: dict, *, source: str, out: Path, overwrite: bool, crop=None
         method=gopt.get("method"),
     )
     difstar.check_sampling(camera, scene, grid)
-    if grid.method == "exact":
-        _log(f"difstar: exact in-focus path (closed-form PSF, no grid), oversample = "
-             f"{grid.oversample}, crop = {grid.crop}, source window {grid.source_window} px")
-    else:
-        _log(f"difstar: FFT grid n = {grid.n}, oversample = {grid.oversample}, crop = "
-             f"{grid.crop}, defocus phase {'on' if grid.use_defocus else 'off (Δz negligible)'}")
+    _log(f"difstar: {grid.describe()}")
     with output_dir(out, overwrite=overwrite, inputs=inputs, command="predict") as tmp:
         spectral = camera.sensor.spectral_weights is not None
         if spectral and (devices is not None or os.environ.get("DIFSTAR_DEVICES", "").strip()):
