@@ -18,10 +18,10 @@ difstar's model makes one:
 * **Wavefront**: exp(i k (W_dz + W_ab)), W_dz = ½(1/z_i − 1/z_R)|ξ|², W_ab =
   c11·√5·(6ρ⁴ − 6ρ² + 1) with ρ = |ξ| / R_zernike (Noll 11, unit RMS over that circle).
 * **Field**: a zero-padded FFT with the kernel exp(+2πi x·ξ/(λ z_R)), divided on its
-  principal period by the transform of the cells' point means (a Dirichlet kernel); the intensity on a
-  sub-pixel grid (``pixel_supersample``² samples per pixel), normalised so that it sums
-  to the fraction of the pupil's power, then **summed over each pixel's area** (box
-  integration, no sinc model).
+  principal period by the transform of the cells' point means (a Dirichlet kernel); the
+  intensity on a sub-pixel grid (``pixel_supersample``² samples per pixel), normalised
+  so that it sums to the fraction of the pupil's power, then **summed over each pixel's
+  area** (box integration, no sinc model).
 * **Source**: a uniform disc of radius r_s in the object plane, its geometric image a
   disc of radius |M|·r_s drawn by sub-pixel point tests, convolved with the intensity.
 * **Radiometry**: the geometric image's irradiance is L·A/z_R² (A the pupil's area,
@@ -200,8 +200,8 @@ def intensity(iris: Iris, *, wavelength: float, z_r: float, z_i: float,
     at index fft_size//2), each sample the fraction of the pupil's power in its cell."""
     du = pixel_pitch / pixel_supersample
     spacing = wavelength * z_r / (fft_size * du)
-    p, power = pupil_function(iris, wavelength=wavelength, z_r=z_r, z_i=z_i, spacing=spacing,
-                       size=fft_size, supersample=pupil_supersample)
+    p, power = pupil_function(iris, wavelength=wavelength, z_r=z_r, z_i=z_i,
+                              spacing=spacing, size=fft_size, supersample=pupil_supersample)
     # kernel exp(+2πi x·ξ/(λ z_R)) = inverse DFT; axes: row index ↔ −y in both planes
     u = np.fft.fftshift(np.fft.ifft2(np.fft.ifftshift(p)))
     # each cell holds the mean of s² point values, s a side: a sum of s shifted copies

@@ -53,12 +53,9 @@ def _max_side(budget: int) -> int:
 
 def required_oversample(camera: Camera, scene: Scene) -> int:
     """Rule 1: the smallest q with p/q ≤ λ_min N_w (the pupil fits in the frequency
-    grid; the PSF is sampled at the pixel centres, so its own bandwidth sets nothing)."""
-    g = geometry_of(camera, scene)
-    r = float(camera.lens.pupil.max_radius())
-    nw = float(g.z_exit_pupil) / (2 * r)
-    lam = float(jnp.min(camera.sensor.wavelengths))
-    return max(1, math.ceil(camera.sensor.pixel_pitch / (lam * nw) - 1e-9))
+    grid; the PSF is sampled at the pixel centres, so its own bandwidth sets nothing).
+    p/(λ N_w) = 2 r p/(λ z_R) is the intensity's bandwidth, :func:`pixel_bandwidth`."""
+    return max(1, math.ceil(pixel_bandwidth(camera, scene) - 1e-9))
 
 
 def pixel_bandwidth(camera: Camera, scene: Scene, scaling: str = "fresnel") -> float:
