@@ -733,6 +733,30 @@ def test_flip_hop_leaves_the_twin_of_a_defocus():
     assert [s for s in res.stages if "hop" in s][0]["tried"][1]["change"] == "set z4=300"
 
 
+def test_a_fit_plans_its_psf_for_the_wavefront_it_finds():
+    """The PSF plan follows the Zernike terms' values (1.5 × them), not their bounds: a
+    model started near zero plans a coarse pupil, and a fit whose answer needs a finer
+    one solves again on it. Started at z4 = +40 nm, the fit of the independent
+    generator's z4 = 400 nm ends on a plan that holds at its answer, within 4 standard
+    errors of the generator's value."""
+    z4 = 400e-9
+    model, data = _twin_case(3, z4=z4)
+    model = model.with_values({"z4": 40.0})
+    shape = tuple(s + 2 * model.pad for s in data.image.shape)
+    start = model.plan(shape)
+    assert model.plan_holds({"z4": 40.0}, shape)
+    assert not model.plan_holds({"z4": 400.0}, shape)
+    # planning for the bounds (±1000 nm) would have asked for more than the answer needs
+    need = model.with_values({"z4": 400.0}).plan(shape, margin=1.0).subcells
+    assert start.subcells < need < model.with_values({"z4": 1000.0}).plan(shape).subcells
+    res = fit(model, data, stages=[{"free": ["z4", "flux"], "max_steps": 30}])
+    assert abs(res.values["z4"] - z4 * 1e9) < max(4 * res.errors["z4"], 5.0)
+    end = model.with_values(res.values)
+    assert end.plan(shape).subcells > start.subcells
+    assert end.plan_holds(res.values, shape)
+    assert res.chi2_dof < 2.0
+
+
 def test_grouped_flip_hop_negates_the_even_terms_together():
     """The twin of a wavefront with defocus and spherical aberration negates both terms
     at once. Started at the twin (−z4, −z11) of the independent generator's wavefront, a

@@ -152,6 +152,10 @@ def image_distortion(shear, aspect):
     pupil off their 60° spacing."""
     return jnp.array([[1.0, 0.0], [shear, 1.0 + aspect]])
 
+#: The Zernike terms' margin in a fit's PSF plan: a stage plans for 1.5 × its start's
+#: values, and solves again from its answer where that needs a finer plan.
+PLAN_MARGIN = 1.5
+
 class ImageModel:
     """A star image: pupil builder, wavefront (Zernike Noll indices), light, detector.
 
@@ -318,14 +322,23 @@ class ImageModel:
         return (self.pupil.segment is not None and p is not None
                 and (p.free or p.value != 0))
 
-    def plan(self, shape, light: Light | None = None, *, segment: bool = False):
+    def plan(self, shape, light: Light | None = None, *, segment: bool = False,
+             margin: float = PLAN_MARGIN):
         """The PSF plan for an output window ``shape`` (data pixels, padding included) and
-        ``light`` (default: the model's), made once with the largest angular scale and
-        wavefront slope the bounds allow. ``segment``: the plan of one segment's pattern
-        (the incoherent part; tilt only, no Zernike terms), which the whole pupil's plan
-        makes and caches as well, so that :meth:`image` finds it inside a trace."""
+        ``light`` (default: the model's), made once (cached) with the largest angular
+        scale and star shift the bounds allow and the Zernike terms at ``margin`` × the
+        model's values (a fit checks with :meth:`plan_holds` that its answer stays within
+        them). ``segment``: the plan of one segment's pattern (the incoherent part; tilt
+        only, no Zernike terms), which the whole pupil's plan makes and caches as well, so
+        that :meth:`image` finds it inside a trace."""
         light = self.light if light is None else light
-        key = (tuple(shape), tuple(light.wavelengths), segment)
+        # the Zernike terms (the whole pupil's only) at margin × their values: their
+        # slope sets the pupil's sub-cells, whose number grows with it (planning for the
+        # bounds' extremes made the Spitzer fit's pupil 5× finer than its answer needs)
+        coeffs = {} if segment else {
+            j: 1e-9 * margin * abs(self.params[f"z{j}"].value) for j in self.zernike}
+        coeffs = {j: c for j, c in coeffs.items() if c > 0}
+        key = (tuple(shape), tuple(light.wavelengths), segment, tuple(sorted(coeffs.items())))
         if key in self._plans:
             return self._plans[key]
         if not segment and self.has_incoherent:
@@ -342,12 +355,6 @@ class ImageModel:
                                          if k.split("@")[0] in ("x0", "y0")
                                          for b in [p.value, *(p.bounds or ())]])
         tilt = shift * self._bound("pixel_scale", max) * ARCSEC
-        # the largest Zernike terms any value or bound allows (the whole pupil's only)
-        coeffs = {} if segment else {
-            j: 1e-9 * max(abs(c) for c in [self.params[f"z{j}"].value,
-                                           *(self.params[f"z{j}"].bounds or ())])
-            for j in self.zernike}
-        coeffs = {j: c for j, c in coeffs.items() if c > 0}
         wf = _Shifted(Zernike(coeffs, r) if coeffs else None, tilt, tilt)
         plan = plan_psf(pupil,
                         wavelength=np.asarray(light.wavelengths),
@@ -355,6 +362,17 @@ class ImageModel:
                         accuracy=self.accuracy, wavefront=wf, max_radius=r)
         self._plans[key] = plan
         return plan
+
+    def plan_holds(self, values: Mapping[str, float], shape,
+                   light: Light | None = None) -> bool:
+        """Whether the plan this model made for ``shape`` and ``light`` (:meth:`plan`, at
+        its own values) is fine enough for ``values`` too: the plan ``values`` need
+        (margin 1) asks no more sub-cells of the pupil and is otherwise the same."""
+        used = self.plan(shape, light)
+        need = self.with_values(values).plan(shape, light, margin=1.0)
+        same = (used.method, used.nodes, used.period, used.pupil_window, used.use_defocus) \
+            == (need.method, need.nodes, need.period, need.pupil_window, need.use_defocus)
+        return same and used.subcells >= need.subcells
 
     def _pupil_at(self, v):
         return self._oriented(self.pupil.build(v), v)

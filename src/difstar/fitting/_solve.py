@@ -194,15 +194,39 @@ def _release_compiled() -> None:
 def _as_list(x):
     return list(x) if isinstance(x, (list, tuple)) else [x]
 
+#: How many times a solve starts again from its answer with a finer PSF plan (the plan
+#: follows the Zernike terms' values: :meth:`ImageModel.plan_holds`).
+MAX_REPLANS = 3
+
 def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
              atol: float, ftol: float = 1e-6, label: str | None = None):
-    """One Levenberg–Marquardt solve of ``model``'s free parameters; with ``label``, a
-    progress bar (tqdm, on stderr) of its steps and χ²."""
+    """Levenberg–Marquardt solves of ``model``'s free parameters: the PSF planned for the
+    start's values, and again from the answer wherever that needs a finer plan (at most
+    :data:`MAX_REPLANS` times); with ``label``, a progress bar (tqdm, on stderr) of its
+    steps and χ². Returns (values, status, converged, steps, the model at the values)."""
+    if not model.free:
+        raise FitInputError("fit: no free parameter (set free=true on at least one).")
+    shapes = [((d.image.shape[0] + 2 * model.pad, d.image.shape[1] + 2 * model.pad), d.light)
+              for d in _as_list(data)]
+    steps = 0
+    for k in range(MAX_REPLANS + 1):
+        vals, status, ok, n = _solve_once(model, data, target, max_steps=max_steps,
+                                          rtol=rtol, atol=atol, ftol=ftol,
+                                          label=None if label is None else
+                                          label + (f" (plan {k + 1})" if k else ""))
+        steps += n
+        holds = all(model.plan_holds(vals, s, li) for s, li in shapes)
+        model = model.with_values(vals)
+        if holds:
+            break
+    return vals, status, ok, steps, model
+
+def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
+                atol: float, ftol: float, label: str | None):
+    """One Levenberg–Marquardt solve of ``model``'s free parameters on its PSF plan."""
     from .._lm import LMStepper, with_batched_jacobian
 
     free = model.free
-    if not free:
-        raise FitInputError("fit: no free parameter (set free=true on at least one).")
     fixed = {k: jnp.asarray(p.value, float) for k, p in model.params.items() if not p.free}
     params = [model.params[k] for k in free]
     res = _residual_fn(model, data, target)
