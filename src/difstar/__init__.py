@@ -147,6 +147,7 @@ from ._metrics import (
 )
 from ._otf import mtf as mtf
 from ._otf import otf as otf
+from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._psf import plan_psf as plan_psf
 from ._psf import psf as psf
 from ._psf_engine import PSFPlan as PSFPlan

@@ -308,6 +308,9 @@ def main(argv=None) -> int:
     """Run the command line; returns the exit status (argparse's own errors exit 2)."""
     ap = build_parser()
     a = ap.parse_args(argv)
+    from difstar._compilation_cache import enable_compilation_cache
+
+    enable_compilation_cache()  # compiled programs kept on disk for the next run
     if a.x64:
         import jax
 
