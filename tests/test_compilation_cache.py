@@ -13,10 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rawpy
+from test_cli import _small_doc
 
 from difstar._compilation_cache import ENV, cache_folder, enable_compilation_cache
-
-from test_cli import _small_doc
 
 
 def test_the_cache_folder_follows_the_environment(monkeypatch, tmp_path):
