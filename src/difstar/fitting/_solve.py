@@ -84,8 +84,15 @@ class _PixelTarget:
         self.wgt = jnp.asarray(np.where(data.mask, 1.0 / data.sigma, 0.0))
         self.n = int(data.mask.sum())
 
-    def __call__(self, model_image, v):
-        return ((model_image - self.img) * self.wgt).ravel()
+    @property
+    def arrays(self):
+        """The data this target compares with, as arrays a compiled program takes as
+        arguments (not constants: a program then serves another σ, mask or star)."""
+        return (self.img, self.wgt)
+
+    def __call__(self, model_image, v, arrays=None):
+        img, wgt = self.arrays if arrays is None else arrays
+        return ((model_image - img) * wgt).ravel()
 
 class SpikeProfiles:
     """The residuals of the spikes' angular profiles: around each spike direction
@@ -142,24 +149,32 @@ class SpikeProfiles:
         self.n = b
         self.directions = [float(d) for d in directions]
 
-    def __call__(self, model_image, v):
-        pm = self.mat @ (model_image - v["background"]).ravel()
-        sums = jax.ops.segment_sum(pm, jnp.asarray(self.window), self.n_windows)
-        return (pm / sums[self.window] - self.data_profile) * self.wgt
+    @property
+    def arrays(self):
+        """The data this target compares with (see :attr:`_PixelTarget.arrays`)."""
+        return (self.mat, jnp.asarray(self.window), self.data_profile, self.wgt)
+
+    def __call__(self, model_image, v, arrays=None):
+        mat, window, profile, wgt = self.arrays if arrays is None else arrays
+        pm = mat @ (model_image - v["background"]).ravel()
+        sums = jax.ops.segment_sum(pm, window, self.n_windows)
+        return (pm / sums[window] - profile) * wgt
 
 def _residual_fn(model: ImageModel, data, target):
-    """values → (residual vector, [model image of each capture]) for ``model`` on each
-    of ``data``'s windows (a FitData or a list of them, one ``target`` each)."""
+    """(values, arrays) → (residual vector, [model image of each capture]) for ``model``
+    on each of ``data``'s windows (a FitData or a list of them, one ``target`` each);
+    ``arrays``: each target's :attr:`~_PixelTarget.arrays` as traced arguments (None: the
+    targets' own, as constants)."""
     datas, targets = _as_list(data), _as_list(target)
     plans = [model.plan((d.image.shape[0] + 2 * model.pad, d.image.shape[1] + 2 * model.pad),
                         d.light) for d in datas]
 
-    def res(v):
+    def res(v, arrays=None):
         rs, ms = [], []
         for i, (d, t, plan) in enumerate(zip(datas, targets, plans)):
             vi = model.capture_values(v, i)
             m = model.image(vi, d.image.shape, plan, exposure=d.exposure, light=d.light)
-            rs.append(t(m, vi))
+            rs.append(t(m, vi, None if arrays is None else arrays[i]))
             ms.append(m)
         return (rs[0] if len(rs) == 1 else jnp.concatenate(rs)), ms
 
@@ -231,30 +246,35 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     params = [model.params[k] for k in free]
     res = _residual_fn(model, data, target)
 
-    def values_of(u):
+    def values_of(u, fixed):
         v = dict(fixed)
         for i, (k, p) in enumerate(zip(free, params)):
             v[k] = _from_u(p, u[i])
         return v
 
-    def residuals(u, _):
-        return res(values_of(u))[0]
+    def residuals(u, args):
+        fixed, arrays = args
+        return res(values_of(u, fixed), arrays)[0]
 
-    # the Jacobian a few columns at a time (bounded memory); one compile, shared by the
-    # check and the solver
+    # the fixed values and the data are the solver's arguments, not constants of its
+    # program: the same stage run again (a repeat's rounds, a hop's tries, another star's
+    # window of the same size) is then the same program, which JAX's compilation cache
+    # finds. The Jacobian a few columns at a time (bounded memory); one compile, shared
+    # by the check and the solver
+    args = (fixed, [t.arrays for t in _as_list(target)])
     residuals = jax.jit(with_batched_jacobian(residuals))
     u0 = jnp.asarray([_to_u(p) for p in params], float)
-    r0 = residuals(u0, None)
+    r0 = residuals(u0, args)
     if not bool(jnp.all(jnp.isfinite(r0))):
         raise FitInputError("fit: the model is not finite at the start; check the units "
                             "(wavelength in metres, pixel_scale in arcsec, Zernike in nm).")
     with _progress_bar(label, max_steps) as progress:
         sol = LMStepper(residuals, rtol=rtol, atol=atol).solve(
-            u0, None, max_steps=max_steps, ftol=ftol, progress=progress)
+            u0, args, max_steps=max_steps, ftol=ftol, progress=progress)
     ok = sol.result == "converged"
     status = {"converged": "converged", "failed": "not converged: the solver failed",
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
-    vals = {k: float(x) for k, x in values_of(sol.u).items()}
+    vals = {k: float(x) for k, x in values_of(sol.u, fixed).items()}
     return vals, status, ok, sol.steps
 
 @contextlib.contextmanager
@@ -289,18 +309,20 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
     base = {k: jnp.asarray(v, float) for k, v in values.items()}
     resv = _residual_fn(model, data, target)
 
-    def res(x):
+    def res(x, args):  # the values and data as arguments (see _solve_once)
+        base, arrays = args
         v = dict(base)
         for i, k in enumerate(free):
             v[k] = x[i]
-        return resv(v)
+        return resv(v, arrays)
 
     x0 = jnp.asarray([values[k] for k in free], float)
-    batched = with_batched_jacobian(lambda x, _: res(x)[0])
-    jac = np.asarray(jax.jit(jax.jacfwd(lambda x: batched(x, None)))(x0))
+    args = (base, [t.arrays for t in _as_list(target)])
+    batched = with_batched_jacobian(lambda x, a: res(x, a)[0])
+    jac = np.asarray(jax.jit(jax.jacfwd(batched))(x0, args))
     if not residual:
         return jac
-    r, m = jax.jit(res)(x0)
+    r, m = jax.jit(res)(x0, args)
     return jac, np.asarray(r), [np.asarray(mi) for mi in m]
 
 def _covariance(jac):
