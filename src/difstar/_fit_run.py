@@ -238,13 +238,16 @@ def photometric_start(model, caps, u0):
     spec = model.params.get("phi0")
     if spec is None or not spec.free:
         return u0
+    import jax
+
     x = from_unconstrained(model, u0)
-    pred = predict(model, x, full=True)
+    # one compiled program (kept by the compilation cache), not the chain op by op
+    pred = jax.jit(lambda x: {k: p.image for k, p in predict(model, x, full=True).items()})(x)
     num = np.zeros(3)
     den = np.zeros(3)
     for cfg in model.configs:
         caps_c = model.captures_of(cfg.name)
-        img = np.asarray(pred[cfg.name].image)  # (K, 3, h, w)
+        img = np.asarray(pred[cfg.name])  # (K, 3, h, w)
         masks = bayer_masks_np(img.shape[-2:], model.camera.pattern).astype(bool)  # (3, h, w)
         for k, c in enumerate(caps_c):
             z = np.asarray(caps[c.name]["zeta"])

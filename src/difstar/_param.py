@@ -42,6 +42,11 @@ def bound_map(u, lo, hi):
     return lo + (hi - lo) * jax.nn.sigmoid(u)
 
 
+def step_map(u, start, scale):
+    """Unconstrained ``u`` → the value of an unbounded parameter: ``start + scale·u``."""
+    return start + scale * u
+
+
 def bound_map_inverse(x, lo, hi, margin: float = START_MARGIN):
     """Value ``x`` in [lo, hi] → unconstrained ``u`` (0 where lo == hi); a value within
     ``margin`` × the range of a bound is moved to that distance first."""
@@ -169,8 +174,7 @@ class Param:
         """The value (shaped like the value) for unconstrained ``u``; jittable in ``u``."""
         if self.bounds is not None:
             return jax.tree.map(bound_map, u, self.bounds[0], self.bounds[1])
-        return jax.tree.map(lambda w, v0, s: v0 + s * w, u, self.value,
-                            _tree_like(self.step_scale(), self.value))
+        return jax.tree.map(step_map, u, self.value, _tree_like(self.step_scale(), self.value))
 
 
 def _tree_like(s, value):
@@ -180,4 +184,5 @@ def _tree_like(s, value):
     return s
 
 
-__all__ = ["Param", "FitInputError", "bound_map", "bound_map_inverse", "START_MARGIN"]
+__all__ = ["Param", "FitInputError", "bound_map", "bound_map_inverse", "step_map",
+           "START_MARGIN"]

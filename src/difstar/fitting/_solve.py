@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._param import step_map
 from ._data import FitData, _angle_from, _polar
 from ._model import ImageModel
 from ._params import FitInputError, _from_u, _to_u
@@ -246,22 +247,26 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     params = [model.params[k] for k in free]
     res = _residual_fn(model, data, target)
 
-    def values_of(u, fixed):
+    # an unbounded parameter's start and step (start + step·u) vary from stage to stage
+    steps = {k: (jnp.asarray(p.value, float), jnp.asarray(p.step_scale(), float))
+             for k, p in zip(free, params) if p.bounds is None}
+
+    def values_of(u, fixed, steps):
         v = dict(fixed)
         for i, (k, p) in enumerate(zip(free, params)):
-            v[k] = _from_u(p, u[i])
+            v[k] = step_map(u[i], *steps[k]) if k in steps else _from_u(p, u[i])
         return v
 
     def residuals(u, args):
-        fixed, arrays = args
-        return res(values_of(u, fixed), arrays)[0]
+        fixed, steps, arrays = args
+        return res(values_of(u, fixed, steps), arrays)[0]
 
-    # the fixed values and the data are the solver's arguments, not constants of its
-    # program: the same stage run again (a repeat's rounds, a hop's tries, another star's
-    # window of the same size) is then the same program, which JAX's compilation cache
-    # finds. The Jacobian a few columns at a time (bounded memory); one compile, shared
-    # by the check and the solver
-    args = (fixed, [t.arrays for t in _as_list(target)])
+    # the fixed values, the unbounded parameters' starts and the data are the solver's
+    # arguments, not constants of its program: the same stage run again (a repeat's
+    # rounds, a hop's tries, another star's window of the same size) is then the same
+    # program, which JAX's compilation cache finds. The Jacobian a few columns at a time
+    # (bounded memory); one compile, shared by the check and the solver
+    args = (fixed, steps, [t.arrays for t in _as_list(target)])
     residuals = jax.jit(with_batched_jacobian(residuals))
     u0 = jnp.asarray([_to_u(p) for p in params], float)
     r0 = residuals(u0, args)
@@ -274,7 +279,7 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     ok = sol.result == "converged"
     status = {"converged": "converged", "failed": "not converged: the solver failed",
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
-    vals = {k: float(x) for k, x in values_of(sol.u, fixed).items()}
+    vals = {k: float(x) for k, x in values_of(sol.u, fixed, steps).items()}
     return vals, status, ok, sol.steps
 
 @contextlib.contextmanager
