@@ -152,6 +152,12 @@ def test_recovers_noiseless_and_noisy():
     x = F.from_unconstrained(model, res.u)
     cov, se, diag = fitter.covariance(res.u, args)
     assert 0.9 < diag["reduced_chi2"] < 1.1  # the noise model is right
+    # the solver's last linearisation (no compile) gives the same covariance as a
+    # Jacobian computed anew at its answer
+    cov_s, se_s, diag_s = fitter.covariance(res.u, args, res)
+    np.testing.assert_allclose(cov_s, cov, rtol=1e-7, atol=1e-7 * np.abs(cov).max())
+    assert diag_s["n_residuals"] == diag["n_residuals"]
+    np.testing.assert_allclose(diag_s["chi2"], diag["chi2"], rtol=1e-10)
     for name in FREE:  # within 5 standard errors of the truth
         err = np.abs(np.asarray(x[name]) - TRUTH[name])
         assert np.all(err < 5 * se[name] + 1e-12), (name, err, se[name])
@@ -257,8 +263,11 @@ def test_response_curve_restarts_leave_a_shallow_basin():
     u0 = F.to_unconstrained(model, stuck)
     args = F.make_args(model, data, u0)
     loss0 = fitter.loss(u0, args)
-    u, tries = restart_response_curves(fitter, model, u0, args, {"max_steps": 40},
-                                       verbose=False)
+    stuck_solve = fitter.solve(u0, args, max_steps=1)  # the first step evaluates u0
+    np.testing.assert_allclose(stuck_solve.loss, loss0, rtol=1e-10)
+    solved, tries = restart_response_curves(fitter, model, stuck_solve, args,
+                                            {"max_steps": 40}, verbose=False)
+    u = solved.u
     assert any(t["kept"] for t in tries)
     assert fitter.loss(u, args) < 1e-3 * loss0
     knee = np.asarray(F.from_unconstrained(model, u)["knee"])

@@ -742,7 +742,7 @@ def test_a_fit_plans_its_psf_for_the_wavefront_it_finds():
     z4 = 400e-9
     model, data = _twin_case(3, z4=z4)
     model = model.with_values({"z4": 40.0})
-    shape = tuple(s + 2 * model.pad for s in data.image.shape)
+    shape = model.padded_shape(data.image.shape)
     start = model.plan(shape)
     assert model.plan_holds({"z4": 40.0}, shape)
     assert not model.plan_holds({"z4": 400.0}, shape)
@@ -755,6 +755,19 @@ def test_a_fit_plans_its_psf_for_the_wavefront_it_finds():
     assert end.plan(shape).subcells > start.subcells
     assert end.plan_holds(res.values, shape)
     assert res.chi2_dof < 2.0
+
+
+def test_a_fit_says_when_its_plan_never_caught_up(monkeypatch):
+    """Where the answer still needs a finer PSF plan after the last re-plan, the fit
+    warns (its values stand on a plan made for smaller Zernike terms) rather than
+    returning them as if the plan held."""
+    import difstar.fitting._solve as solve_mod
+
+    model, data = _twin_case(3, z4=400e-9)
+    monkeypatch.setattr(solve_mod, "MAX_REPLANS", 0)
+    monkeypatch.setattr(type(model), "plan_holds", lambda self, *a, **k: False)
+    with pytest.warns(RuntimeWarning, match="finer PSF plan after 1 solves"):
+        fit(model, data, stages=[{"free": ["flux"], "max_steps": 2}])
 
 
 def test_grouped_flip_hop_negates_the_even_terms_together():

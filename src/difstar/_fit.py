@@ -452,9 +452,16 @@ class Fitter:
         """See :meth:`difstar._lm.LMStepper.solve` (the stopping rule)."""
         return self._lm.solve(u0, args, max_steps=max_steps, ftol=ftol, progress=progress)
 
-    def covariance(self, u, args):
-        """See :func:`covariance`."""
-        return _covariance(self.model, np.asarray(self._jac(u, args)), self.residuals(u, args), u)
+    def covariance(self, u, args, solved: SolveResult | None = None):
+        """See :func:`covariance`. ``solved``: the solve (of this Fitter, on ``args``)
+        that ended at ``u``: its last linearisation gives the Jacobian, so nothing more
+        is compiled or evaluated (without it, the Jacobian is computed anew)."""
+        if solved is not None and solved.state is not None and np.array_equal(
+                np.asarray(solved.u), np.asarray(u)):
+            j, r = self._lm.linearisation(solved)
+        else:
+            j, r = np.asarray(self._jac(u, args)), self.residuals(u, args)
+        return _covariance(self.model, j, r, u)
 
 
 def solve(model: FitModel, u0, args, *, max_steps: int = 100, rtol: float = 1e-6,

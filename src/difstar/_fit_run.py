@@ -266,7 +266,9 @@ def photometric_start(model, caps, u0):
 def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = True):
     """Stage 1: the response curves (toe, knee) held at their starts, σ from the
     observed values; stage 2 (repeated ``reweight`` times): everything free, σ from the
-    current prediction. Returns the final u and per-stage records."""
+    current prediction. Returns the final solve (:class:`difstar._lm.SolveResult`: its
+    ``u``, and its linearisation for the covariance), the per-stage records and the last
+    stage's solver ``args``."""
     from difstar._fit import make_args
 
     stages = []
@@ -293,7 +295,7 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = 
 
         res = fitter.solve(u, args, max_steps=int(solver.get("max_steps", 100)),
                            ftol=float(solver.get("ftol", 1e-6)), progress=progress)
-        u = res.u
+        u, solved = res.u, res
         stages.append({
             "label": label, "held": list(hold), "steps": res.steps, "accepted": res.accepted,
             "loss_start": res.loss_start, "loss_end": res.loss, "result": res.result,
@@ -303,14 +305,15 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = 
             _log(f"difstar fit: stage {len(stages)} {res.result} after {res.steps} steps, "
                  f"{res.seconds:.1f} s (+ {res.compile_seconds:.1f} s compile)")
     t0 = time.perf_counter()
-    u, tries = restart_response_curves(fitter, model, u, args, solver, verbose=verbose)
+    solved, tries = restart_response_curves(fitter, model, solved, args, solver,
+                                            verbose=verbose)
     if tries:
         kept = [t for t in tries if t["kept"]]
         stages.append({"label": "response-curve restarts", "tries": tries,
                        "steps": sum(t["steps"] for t in tries),
                        "result": f"{len(kept)} of {len(tries)} kept",
                        "seconds": time.perf_counter() - t0, "compile_seconds": 0.0})
-    return u, stages, args
+    return solved, stages, args
 
 
 #: Restarts of each channel's response-curve parameters, as factors of the value reached:
@@ -321,14 +324,16 @@ RESTART_FACTORS = (0.5, 2.0)
 RESTARTED = ("knee",)
 
 
-def restart_response_curves(fitter, model, u, args, solver: dict, *, verbose: bool = True):
-    """From the converged ``u``, re-solve with each channel's knee moved by each of
-    :data:`RESTART_FACTORS` (inside its bounds), everything else as reached; keep any
-    start that ends at a lower loss. Returns (u, tries). (The toe, pinned by the
-    unsaturated dark pixels of every capture, has not needed it.)"""
+def restart_response_curves(fitter, model, solved, args, solver: dict, *,
+                            verbose: bool = True):
+    """From the converged solve ``solved`` (a :class:`difstar._lm.SolveResult` on
+    ``args``), re-solve with each channel's knee moved by each of :data:`RESTART_FACTORS`
+    (inside its bounds), everything else as reached; keep any start that ends at a lower
+    loss. Returns (the best solve, tries). (The toe, pinned by the unsaturated dark
+    pixels of every capture, has not needed it.)"""
     from difstar._fit import from_unconstrained, to_unconstrained
 
-    best = fitter.loss(u, args)
+    u, best = solved.u, solved.loss  # the loss at u (no model evaluation to compile)
     tries = []
     for name in RESTARTED:
         spec = model.params.get(name)
@@ -352,8 +357,8 @@ def restart_response_curves(fitter, model, u, args, solver: dict, *, verbose: bo
                          f"× {f:g}: loss {res.loss:.7g} "
                          f"({'lower: kept' if better else 'not lower'})")
                 if better:
-                    u, best = res.u, res.loss
-    return u, tries
+                    u, best, solved = res.u, res.loss, res
+    return solved, tries
 
 
 def _values(model, u) -> dict:
@@ -396,10 +401,11 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
     if verbose:
         _log(f"difstar fit: {len(model.captures)} captures, {model.n_free} free parameters, "
              "grids " + "; ".join(f"{c.name}: {c.grid.describe()}" for c in model.configs))
-    u, stages, args = run_stages(fitter, model, caps, man.noise, u0, man.solver,
-                                 verbose=verbose)
+    solved, stages, args = run_stages(fitter, model, caps, man.noise, u0, man.solver,
+                                      verbose=verbose)
+    u = solved.u
     t0 = time.perf_counter()
-    cov, se, diag = fitter.covariance(u, args)
+    cov, se, diag = fitter.covariance(u, args, solved)
     t_cov = time.perf_counter() - t0
     x = _values(model, u)
     params = {}

@@ -18,11 +18,13 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 import optimistix as optx
 
 #: Consecutive rejected steps after which a solve that has moved counts as converged:
@@ -126,6 +128,9 @@ class SolveResult:
     result: str  # "converged", "failed" or "max_steps"
     seconds: float
     compile_seconds: float
+    #: the solver's last state: its linearisation is at ``u`` (see
+    #: :meth:`LMStepper.linearisation`); None where a solve did not keep it
+    state: Any = dataclasses.field(default=None, repr=False)
 
 
 class LMStepper:
@@ -159,7 +164,24 @@ class LMStepper:
             return u, state, done, res == optx.RESULTS.successful, loss, size, \
                 state.num_accepted_steps
 
-        self._init, self._step = init, step
+        @eqx.filter_jit
+        def linearisation(state):
+            # the Jacobian and residuals the last accepted step was linearised at: the
+            # step returns that point as u, so these are the ones at u
+            r = jnp.concatenate([x.ravel() for x in
+                                 jax.tree_util.tree_leaves(state.f_info.residual)])
+            return state.f_info.jac.as_matrix(), r
+
+        self._init, self._step, self._linearisation = init, step, linearisation
+
+    def linearisation(self, result: SolveResult):
+        """(J, r) at ``result.u``: the flattened residuals (leaves in tree order) and
+        their Jacobian in ``u``, as NumPy arrays, taken from the solver's last
+        linearisation (no compile of the model's Jacobian, no evaluation of the model)."""
+        if result.state is None:
+            raise ValueError("this solve kept no solver state; compute the Jacobian anew")
+        j, r = self._linearisation(result.state)
+        return np.asarray(j), np.asarray(r)
 
     def solve(self, u0, args, *, max_steps: int = 100, ftol: float = 1e-6,
               progress: Callable[[int, float, float, bool], None] | None = None
@@ -196,4 +218,5 @@ class LMStepper:
             u=u, steps=k, accepted=acc, loss_start=loss if loss0 is None else loss0,
             loss=loss, result=("converged" if ok else "failed") if done else "max_steps",
             seconds=time.perf_counter() - t0 - t_compile, compile_seconds=t_compile,
+            state=state,
         )

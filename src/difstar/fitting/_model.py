@@ -322,6 +322,11 @@ class ImageModel:
         return (self.pupil.segment is not None and p is not None
                 and (p.free or p.value != 0))
 
+    def padded_shape(self, shape) -> tuple[int, int]:
+        """The window the PSF is computed on for a data window ``shape``: ``pad`` data
+        pixels more on every side (light from outside the window that falls into it)."""
+        return (int(shape[0]) + 2 * self.pad, int(shape[1]) + 2 * self.pad)
+
     def plan(self, shape, light: Light | None = None, *, segment: bool = False,
              margin: float = PLAN_MARGIN):
         """The PSF plan for an output window ``shape`` (data pixels, padding included) and
@@ -394,7 +399,7 @@ class ImageModel:
         h, w = shape
         o = self.oversample
         pad = self.pad
-        hp, wp = h + 2 * pad, w + 2 * pad
+        hp, wp = self.padded_shape(shape)
         plan = self.plan((hp, wp), light) if plan is None else plan
         ang = v["pixel_scale"] * ARCSEC  # radians per data pixel
         z = _PITCH / ang * 1.0

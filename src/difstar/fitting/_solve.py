@@ -8,6 +8,7 @@ import contextlib
 import dataclasses
 import gc
 import sys
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -167,8 +168,7 @@ def _residual_fn(model: ImageModel, data, target):
     ``arrays``: each target's :attr:`~_PixelTarget.arrays` as traced arguments (None: the
     targets' own, as constants)."""
     datas, targets = _as_list(data), _as_list(target)
-    plans = [model.plan((d.image.shape[0] + 2 * model.pad, d.image.shape[1] + 2 * model.pad),
-                        d.light) for d in datas]
+    plans = [model.plan(model.padded_shape(d.image.shape), d.light) for d in datas]
 
     def res(v, arrays=None):
         rs, ms = [], []
@@ -222,8 +222,7 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     steps and χ². Returns (values, status, converged, steps, the model at the values)."""
     if not model.free:
         raise FitInputError("fit: no free parameter (set free=true on at least one).")
-    shapes = [((d.image.shape[0] + 2 * model.pad, d.image.shape[1] + 2 * model.pad), d.light)
-              for d in _as_list(data)]
+    shapes = [(model.padded_shape(d.image.shape), d.light) for d in _as_list(data)]
     steps = 0
     for k in range(MAX_REPLANS + 1):
         vals, status, ok, n = _solve_once(model, data, target, max_steps=max_steps,
@@ -235,6 +234,11 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
         model = model.with_values(vals)
         if holds:
             break
+    else:  # the wavefront kept growing: the answer stands on the last plan, said so
+        warnings.warn(f"fit: the answer's Zernike terms still need a finer PSF plan after "
+                      f"{MAX_REPLANS + 1} solves; its values were computed on a plan made "
+                      "for smaller terms. Check the Zernike bounds, or start nearer the "
+                      "answer.", RuntimeWarning, stacklevel=2)
     return vals, status, ok, steps, model
 
 def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,

@@ -349,8 +349,8 @@ def _check_fit_inputs(model: ImageModel, datas: Sequence[FitData], stages: Seque
             half = st.get("half") if st.get("hop") is None and st.get("repeat") is None \
                 else None
             for d in datas:
-                h, w = d.image.shape if half is None else d.cropped(int(half)).image.shape
-                hp, wp = h + 2 * model.pad, w + 2 * model.pad
+                hp, wp = model.padded_shape(
+                    d.image.shape if half is None else d.cropped(int(half)).image.shape)
                 if sh > hp or sw > wp:
                     raise _InputAt(("source", "image"), f"the source image ({sh} × {sw}) is "
                                    f"larger than stage {si}'s padded window ({hp} × {wp}); "
@@ -372,7 +372,7 @@ def _check_fit_memory(model: ImageModel, datas: Sequence[FitData]) -> None:
     from .._validate import fmt_bytes, memory_budget
 
     h, w = max((d.image.shape for d in datas), key=lambda s: s[0] * s[1])
-    shape = (h + 2 * model.pad, w + 2 * model.pad)
+    shape = model.padded_shape((h, w))
     try:
         plan = model.plan(shape)
         one = psf_bytes(plan, shape, 1, _edges(model._pupil_at(model.values())), _PITCH)
