@@ -1202,6 +1202,41 @@ def test_image_model_jacobian_matches_finite_differences():
     assert np.abs(jh[..., names.index("halo2")]).max() > 0  # the light it would move
 
 
+def test_fit_jacobian_residual_and_images_from_one_program():
+    """The errors' Jacobian (the fit's residual (model − data)/σ over its free
+    parameters, physical units) against central differences of the model image itself,
+    and the residual and model image it returns with it against that image, in float64."""
+    import jax.numpy as jnp
+
+    from difstar.fitting._solve import _jacobian, _PixelTarget
+
+    model = ImageModel(obstructed_circle_pupil(), {
+        "pixel_scale": Param(0.6), "x0": Param(0.2, True, (-2.0, 2.0)),
+        "rotation": Param(3.0, True, (-30.0, 30.0)), "flux": Param(50.0, True, scale=10.0),
+        "background": Param(0.5, True, scale=1.0)},
+        light=Light.monochromatic(3.6e-6), pad=4)
+    rng = np.random.default_rng(0)
+    sigma = 0.05 + 0.01 * rng.random((13, 13))
+    data = FitData.from_array(rng.random((13, 13)), sigma=sigma)
+    base = model.values()
+    names = model.free
+    plan = model.plan(model.padded_shape((13, 13)))
+
+    def img(x, at):
+        v = {k: jnp.asarray(val, float) for k, val in at.items()}
+        v.update({k: x[i] for i, k in enumerate(names)})
+        return model.image(v, (13, 13), plan)
+
+    x0 = jnp.asarray([base[k] for k in names], float)
+    jac, r, m = _jacobian(model, data, base, [_PixelTarget(data)])
+    expected = np.asarray(img(x0, base))
+    np.testing.assert_allclose(m[0], expected, rtol=1e-12, atol=1e-12 * expected.max())
+    np.testing.assert_allclose(r, ((expected - data.image) / sigma).ravel(), rtol=1e-10,
+                               atol=1e-10)
+    _assert_matches_central_differences(jac.reshape(13, 13, -1) * sigma[..., None], img,
+                                        base, names, x0)
+
+
 def test_incoherent_part_is_the_mean_over_segment_phasing_errors():
     """``incoherent`` = f: the image is (1 − f) × the whole pupil's + f × the segments'
     patterns added incoherently. The truth: the whole 18-segment pupil propagated by

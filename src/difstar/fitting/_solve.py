@@ -311,7 +311,8 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
               residual: bool = True):
     """The residual's Jacobian over the free parameters (physical units) at ``values``,
     a few columns at a time (:func:`difstar._lm.with_batched_jacobian`); with
-    ``residual``, also the residual and the model images (one more compile)."""
+    ``residual``, also the residual and the model images (from the same program: the
+    linearisation's primal values)."""
     from .._lm import with_batched_jacobian
 
     free = model.free
@@ -327,12 +328,17 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
 
     x0 = jnp.asarray([values[k] for k in free], float)
     args = (base, [t.arrays for t in _as_list(target)])
-    batched = with_batched_jacobian(lambda x, a: res(x, a)[0])
-    jac = np.asarray(jax.jit(jax.jacfwd(batched))(x0, args))
     if not residual:
-        return jac
-    r, m = jax.jit(res)(x0, args)
-    return jac, np.asarray(r), [np.asarray(mi) for mi in m]
+        batched = with_batched_jacobian(lambda x, a: res(x, a)[0])
+        return np.asarray(jax.jit(jax.jacfwd(batched))(x0, args))
+    both = with_batched_jacobian(res)  # (residual, model images), one linearisation
+
+    def with_values(x, a):  # the residual differentiated, both returned as they are
+        out = both(x, a)
+        return out[0], out
+
+    jac, (r, m) = jax.jit(jax.jacfwd(with_values, has_aux=True))(x0, args)
+    return np.asarray(jac), np.asarray(r), [np.asarray(mi) for mi in m]
 
 def _covariance(jac):
     """(JᵀJ)⁻¹ by a pseudo-inverse of the column-scaled normal matrix, and the columns'
