@@ -1,6 +1,7 @@
 """Physics tests run in float64 (DESIGN.md: "Tests of physics run in float64").
 
-The command line's compilation cache is off (``DIFSTAR_COMPILATION_CACHE``).
+JAX's persistent compilation cache lives in a folder of the session's own (never the
+user's ``~/.cache``).
 
 Each test module's compiled executables and cached constants are dropped after it: a
 pytest-xdist worker runs hundreds of tests in one process, and JAX's caches would
@@ -13,12 +14,28 @@ import os
 import jax
 import pytest
 
-# the command line's persistent compilation cache stays off in the tests (each test
-# compiles as a first run would; tests/test_compilation_cache.py turns it on in a folder
-# of its own)
+# the command line's cache in the user's folder is never touched by the tests: off until
+# the session fixture below gives it a folder of the test session's own
 os.environ["DIFSTAR_COMPILATION_CACHE"] = "off"
 
 jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _session_compilation_cache(tmp_path_factory):
+    """JAX's persistent compilation cache in a fresh folder of this test session (one
+    per xdist worker), for the tests and the commands they start: a program compiled
+    once (a fit's stage run again in a repeat or a hop, the same model in another test)
+    is loaded, not compiled again. A loaded program is the program compiled, so no
+    result changes; the folder starts empty, so nothing carries over between sessions.
+    tests/test_compilation_cache.py checks a run from the cache against one without."""
+    from difstar._compilation_cache import ENV, enable_compilation_cache
+
+    folder = tmp_path_factory.mktemp("jax-compilation-cache")
+    os.environ[ENV] = str(folder)
+    enable_compilation_cache(folder)
+    yield
+    os.environ[ENV] = "off"
 
 
 @pytest.fixture(autouse=True, scope="module")
