@@ -571,3 +571,19 @@ def test_light_band_is_bounded_in_the_python_api(kw, match):
         Light.band(3e-6, 4e-6, **kw)
     with pytest.raises(FitInputError, match="at most 1024"):
         Light((1e-6,) * 2000, (1.0,) * 2000)
+
+
+def test_a_model_not_finite_at_the_start_is_named(monkeypatch):
+    """A model image that is not finite at the start (units off by 10⁶, say) is refused
+    with a message naming the units to check, from the solver's first step (which only
+    evaluates the start), not a solver's traceback."""
+    import jax.numpy as jnp
+
+    from difstar.fitting import ImageModel, fit
+
+    model, data = _api_case()
+    image = ImageModel.image
+    monkeypatch.setattr(ImageModel, "image",
+                        lambda self, *a, **k: image(self, *a, **k) * jnp.nan)
+    with pytest.raises(FitInputError, match="not finite at the start; check the units"):
+        fit(model, data, stages=[{"free": ["x0", "flux"], "max_steps": 5}])

@@ -189,10 +189,9 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
         for tr in tries:
             m = model.with_values({**values, **tr}, free=names)
             ts = time.perf_counter()
-            vals, status, ok, n, m = _one_fit(m, ds, targets, max_steps=int(
+            vals, status, ok, n, m, chi2 = _one_fit(m, ds, targets, max_steps=int(
                 st.get("max_steps", max_steps)), rtol=float(st.get("rtol", rtol)), atol=atol,
                 label=f"stage {si}" if verbose else None)
-            chi2 = chi2_at(m, ds, vals, targets)
             entry = {"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
                      "kind": kind, "status": status, "steps": n,
                      "seconds": time.perf_counter() - ts}

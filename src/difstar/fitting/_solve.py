@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import gc
+import math
 import sys
 import warnings
 from collections.abc import Mapping, Sequence
@@ -219,13 +220,14 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     """Levenberg–Marquardt solves of ``model``'s free parameters: the PSF planned for the
     start's values, and again from the answer wherever that needs a finer plan (at most
     :data:`MAX_REPLANS` times); with ``label``, a progress bar (tqdm, on stderr) of its
-    steps and χ². Returns (values, status, converged, steps, the model at the values)."""
+    steps and χ². Returns (values, status, converged, steps, the model at the values, the
+    χ² of ``target`` at the values on the plan they were solved on: the solver's own)."""
     if not model.free:
         raise FitInputError("fit: no free parameter (set free=true on at least one).")
     shapes = [(model.padded_shape(d.image.shape), d.light) for d in _as_list(data)]
     steps = 0
     for k in range(MAX_REPLANS + 1):
-        vals, status, ok, n = _solve_once(model, data, target, max_steps=max_steps,
+        vals, status, ok, n, chi2 = _solve_once(model, data, target, max_steps=max_steps,
                                           rtol=rtol, atol=atol, ftol=ftol,
                                           label=None if label is None else
                                           label + (f" (plan {k + 1})" if k else ""))
@@ -239,7 +241,7 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                       f"{MAX_REPLANS + 1} solves; its values were computed on a plan made "
                       "for smaller terms. Check the Zernike bounds, or start nearer the "
                       "answer.", RuntimeWarning, stacklevel=2)
-    return vals, status, ok, steps, model
+    return vals, status, ok, steps, model, chi2
 
 def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                 atol: float, ftol: float, label: str | None):
@@ -269,22 +271,32 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     # arguments, not constants of its program: the same stage run again (a repeat's
     # rounds, a hop's tries, another star's window of the same size) is then the same
     # program, which JAX's compilation cache finds. The Jacobian a few columns at a time
-    # (bounded memory); one compile, shared by the check and the solver
+    # (bounded memory); one trace, shared by the solver's init and step
     args = (fixed, steps, [t.arrays for t in _as_list(target)])
     residuals = jax.jit(with_batched_jacobian(residuals))
     u0 = jnp.asarray([_to_u(p) for p in params], float)
-    r0 = residuals(u0, args)
-    if not bool(jnp.all(jnp.isfinite(r0))):
-        raise FitInputError("fit: the model is not finite at the start; check the units "
-                            "(wavelength in metres, pixel_scale in arcsec, Zernike in nm).")
+    start = []  # the loss at the start: the solver's first step only evaluates it
+
+    def not_finite():
+        return FitInputError("fit: the model is not finite at the start; check the units "
+                             "(wavelength in metres, pixel_scale in arcsec, Zernike in nm).")
+
     with _progress_bar(label, max_steps) as progress:
+        def checked(k, loss, size, done):
+            if k == 1:
+                start.append(loss)
+                if not math.isfinite(loss):
+                    raise not_finite()
+            if progress is not None:
+                progress(k, loss, size, done)
+
         sol = LMStepper(residuals, rtol=rtol, atol=atol).solve(
-            u0, args, max_steps=max_steps, ftol=ftol, progress=progress)
+            u0, args, max_steps=max_steps, ftol=ftol, progress=checked)
     ok = sol.result == "converged"
     status = {"converged": "converged", "failed": "not converged: the solver failed",
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
     vals = {k: float(x) for k, x in values_of(sol.u, fixed, steps).items()}
-    return vals, status, ok, sol.steps
+    return vals, status, ok, sol.steps, 2.0 * sol.loss
 
 @contextlib.contextmanager
 def _progress_bar(label: str | None, max_steps: int):
