@@ -333,7 +333,6 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
     pixels of every capture, has not needed it.)"""
     from difstar._fit import from_unconstrained, to_unconstrained
 
-    u, best = solved.u, solved.loss  # the loss at u (no model evaluation to compile)
     tries = []
     for name in RESTARTED:
         spec = model.params.get(name)
@@ -341,7 +340,8 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
             continue
         for ch in range(spec.size):
             for f in RESTART_FACTORS:
-                vals = {k: np.asarray(v) for k, v in from_unconstrained(model, u).items()}
+                vals = {k: np.asarray(v) for k, v in
+                        from_unconstrained(model, solved.u).items()}
                 x = vals[name].copy()
                 span = spec.hi[ch] - spec.lo[ch]
                 x[ch] = np.clip(x[ch] * f, spec.lo[ch] + 1e-3 * span, spec.hi[ch] - 1e-3 * span)
@@ -349,7 +349,8 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
                 res = fitter.solve(to_unconstrained(model, vals), args,
                                    max_steps=int(solver.get("max_steps", 100)),
                                    ftol=float(solver.get("ftol", 1e-6)))
-                better = res.loss < best * (1 - 1e-9)
+                # solved.loss: the loss at solved.u (no model evaluation to compile)
+                better = res.loss < solved.loss * (1 - 1e-9)
                 tries.append({"parameter": f"{name}[{ch}]", "factor": f, "loss": res.loss,
                               "kept": bool(better), "steps": res.steps})
                 if verbose:
@@ -357,7 +358,7 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
                          f"× {f:g}: loss {res.loss:.7g} "
                          f"({'lower: kept' if better else 'not lower'})")
                 if better:
-                    u, best, solved = res.u, res.loss, res
+                    solved = res
     return solved, tries
 
 

@@ -275,18 +275,13 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     args = (fixed, steps, [t.arrays for t in _as_list(target)])
     residuals = jax.jit(with_batched_jacobian(residuals))
     u0 = jnp.asarray([_to_u(p) for p in params], float)
-    start = []  # the loss at the start: the solver's first step only evaluates it
-
-    def not_finite():
-        return FitInputError("fit: the model is not finite at the start; check the units "
-                             "(wavelength in metres, pixel_scale in arcsec, Zernike in nm).")
-
     with _progress_bar(label, max_steps) as progress:
         def checked(k, loss, size, done):
-            if k == 1:
-                start.append(loss)
-                if not math.isfinite(loss):
-                    raise not_finite()
+            # the solver's first step only evaluates the start: its loss is the start's
+            if k == 1 and not math.isfinite(loss):
+                raise FitInputError("fit: the model is not finite at the start; check the "
+                                    "units (wavelength in metres, pixel_scale in arcsec, "
+                                    "Zernike in nm).")
             if progress is not None:
                 progress(k, loss, size, done)
 
