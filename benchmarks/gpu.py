@@ -264,6 +264,7 @@ def main(argv=None) -> int:
         _log(f"{label} ...")
         limit = 3600 if spec["task"] == "fit" else 900  # a whole fit: minutes on a CPU
         main_r = run_case(spec, cpu=False, timeout=limit)
+        _log(f"  -> {json.dumps(main_r)}")  # each figure as it comes (a cut-off run keeps them)
         cpu_r = run_case(spec, cpu=True, timeout=limit) if (a.cpu_too and on_gpu) else None
         results.append({"case": label, "default": main_r, "cpu": cpu_r})
     scale = []
@@ -281,6 +282,7 @@ def main(argv=None) -> int:
                         "crop": sizes["scale_crop"], "repeats": reps}
                 scale.append(run_case(spec, cpu=cpu, host_devices=host) | {
                     "batch": b, "ndev": d, "on": "cpu" if cpu or not on_gpu else plat})
+                _log(f"  -> {json.dumps(scale[-1])}")
 
     print(f"### {kind if on_gpu else 'CPU only'}: {'quick check' if q else 'full sizes'}\n")
     two = a.cpu_too and on_gpu
