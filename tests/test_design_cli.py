@@ -18,10 +18,6 @@ import numpy as np
 import pytest
 
 from difstar import _batch as B
-
-from difstar import _batch_fits as BF
-
-from difstar import _distributed as DI
 from difstar._design_study import curvature_grid, parse_sweep
 from difstar._validate import InputError
 from difstar.cli import main
@@ -243,7 +239,8 @@ def test_study_hands_lbfgsb_and_its_bounds_to_design(monkeypatch):
 
     calls = []
 
-    def recorder(objective, start, *, constraints, optimiser, steps):
+    def recorder(objective, start, *, constraints, optimiser, steps, callback):
+        assert callback is None  # no progress asked for
         calls.append((constraints, optimiser, steps))
         return types.SimpleNamespace(best_params=start,
                                      history={"value": [1.0], "evaluations": [1]})
@@ -263,3 +260,36 @@ def test_study_hands_lbfgsb_and_its_bounds_to_design(monkeypatch):
     for part in ("radial", "angular"):
         np.testing.assert_allclose(np.asarray(getattr(lo2, part)), -0.01)
         np.testing.assert_allclose(np.asarray(getattr(hi2, part)), 0.01)
+
+
+def test_study_progress_names_the_step_the_objective_and_what_moved(monkeypatch, capsys):
+    """With ``progress``, each optimisation shows a bar on stderr ticking once a step,
+    with the objective and the parameter that moved most since the last step (here the
+    vertices' radial deviations, moved by 0.02 against 0.01 for the curvature); quiet
+    (``log=None``, no ``progress``), stderr stays empty."""
+    import types
+
+    import difstar._design as D
+    import difstar._design_study as S
+
+    def stepping(objective, start, *, constraints, optimiser, steps, callback):
+        p = start
+        for i in range(2):
+            p = type(start)(start.curvature + 0.01 * (i + 1),
+                            start.radial + 0.02 * (i + 1), start.angular)
+            if callback is not None:
+                callback(i, p, 0.5 - 0.1 * i, {})
+        return types.SimpleNamespace(best_params=p,
+                                     history={"value": [1.0], "evaluations": [1]})
+
+    monkeypatch.setattr(D, "design", stepping)
+    monkeypatch.setattr(S, "measure", lambda family, setup, p, opts: (
+        {}, np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((3, 2))))
+    monkeypatch.setenv("TQDM_MININTERVAL", "0")  # every tick drawn (not one per 0.1 s)
+    S.iris_study(quick=True, steps=2, progress=True)
+    err = capsys.readouterr().err
+    assert "optimising the curvature" in err and "curvature and vertices" in err
+    assert "objective 0.4" in err and "moved most: radial (0.02)" in err
+    assert "2/2" in err
+    S.iris_study(quick=True, steps=2, log=None)
+    assert capsys.readouterr().err == ""

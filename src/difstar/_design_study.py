@@ -22,6 +22,8 @@ import math
 import sys
 import time
 
+from ._progress import moved_most, step_bar
+
 STUDY_DEFAULTS = {
     "focal_length": 50e-3,
     "wavelength": 550e-9,
@@ -222,14 +224,16 @@ def iris_study(
     *, blades: int = 9, f_number: float = 8.0, quick: bool = False,
     steps: int | None = None, max_curvature: float = 0.6, vertex_bound: float = 0.015,
     bokeh_weight: float = 0.0, learning_rate: float = 0.1, optimiser: str = "adam",
-    log=_log,
+    log=_log, progress: bool = False,
 ) -> dict:
     """Run the worked study; returns the rows, histories, PSFs and pupils (no files).
 
     optimiser: ``"adam"`` (``optax.adam(learning_rate)`` on the sigmoid-unconstrained
     values) or ``"lbfgsb"`` (:class:`difstar._design.LBFGSB` within the bounds;
     ``learning_rate`` unused); ``steps`` iterations either way (L-BFGS-B may stop
-    sooner)."""
+    sooner). ``log``: a line at each phase (None: quiet); ``progress``: a bar on stderr
+    per optimisation, one tick a step, with the objective, the parameter that moved most
+    and the time left."""
     import numpy as np
     import optax
 
@@ -247,8 +251,21 @@ def iris_study(
     rb = setup.blur_radius(family.area)
     objective = study_objective(family, setup, opts, bokeh_weight=bokeh_weight)
 
-    def opt():
-        return optax.adam(learning_rate) if a["optimiser"] == "adam" else a["optimiser"]
+    def optimise(label, start, box):
+        with step_bar(label if progress else None, steps) as tick:
+            last = [start]
+
+            def callback(i, params, value, aux):
+                name, change = moved_most(last[0], params)
+                last[0] = params
+                tick(f"objective {value:.6g}, moved most: {name or '-'} ({change:.2g})")
+
+            return design(objective, start, constraints=box, steps=steps,
+                          optimiser=(optax.adam(learning_rate) if a["optimiser"] == "adam"
+                                     else a["optimiser"]),
+                          callback=None if tick is None else callback)
+
+    log = log or (lambda msg: None)
 
     designs = {"straight": family.params(0.0)}
     histories = {}
@@ -256,8 +273,7 @@ def iris_study(
     t0 = time.perf_counter()
     box = family.bounds(curvature=(0.0, max_curvature))
     log(f"difstar design: optimising the curvature ({steps} {a['optimiser']} steps) ...")
-    res = design(objective, family.params(0.5 * max_curvature), constraints=box,
-                 optimiser=opt(), steps=steps)
+    res = optimise("curvature", family.params(0.5 * max_curvature), box)
     designs["curved"] = res.best_params
     histories["curved"] = res.history["value"]
     evaluations["curved"] = int(res.history["evaluations"][-1])
@@ -266,7 +282,7 @@ def iris_study(
     log(f"difstar design: optimising curvature and vertices ({steps} {a['optimiser']} "
         "steps) ...")
     start = study_start(family, res.best_params.curvature, vertex_bound)
-    res2 = design(objective, start, constraints=box, optimiser=opt(), steps=steps)
+    res2 = optimise("curvature and vertices", start, box)
     designs["curved+vertices"] = res2.best_params
     histories["curved+vertices"] = res2.history["value"]
     evaluations["curved+vertices"] = int(res2.history["evaluations"][-1])

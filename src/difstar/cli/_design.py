@@ -172,13 +172,14 @@ def _cmd_sweep(a) -> int:
     check_output_free(Path(a.out), overwrite=a.overwrite, inputs=inputs)
     t0 = time.perf_counter()
     plans = []
-    _log(f"difstar design: {len(designs)} designs on {n_dev} device(s) ...")
+    log = (lambda msg: None) if a.quiet else _log
+    log(f"difstar design: {len(designs)} designs on {n_dev} device(s) ...")
     with output_dir(Path(a.out), overwrite=a.overwrite, inputs=inputs,
                     command="design") as tmp:
         result = sweep_designs(
             designs, blades=blades, f_number=f_number, quick=a.quick, devices=n_dev,
             chunk=chunk, plan_out=plans, source=source, convexity_checked=True,
-            progress=lambda d, n, sec: _log(f"difstar design: {d}/{n} designs ({sec:.1f} s)"))
+            progress=lambda d, n, sec: log(f"difstar design: {d}/{n} designs ({sec:.1f} s)"))
         wall = time.perf_counter() - t0
         bad = [r["name"] for r in result["rows"]
                if not all(math.isfinite(v) for k, v in r.items()
@@ -195,7 +196,7 @@ def _cmd_sweep(a) -> int:
                          "free_bytes": p.free_bytes})
         write_json(tmp / "sweep.json", doc)
     sys.stdout.write(md)
-    _log(f"difstar design: {len(designs)} designs in {wall:.1f} s on {n_dev} device(s); "
+    log(f"difstar design: {len(designs)} designs in {wall:.1f} s on {n_dev} device(s); "
          f"wrote {a.out}/ (sweep.json, sweep.md)")
     return 0
 
@@ -220,7 +221,8 @@ def _cmd_design(a) -> int:
     check_output_free(Path(a.out), overwrite=a.overwrite)
     t0 = time.perf_counter()
     with output_dir(Path(a.out), overwrite=a.overwrite, command="design") as tmp:
-        result = iris_study(quick=a.quick, **args)
+        result = iris_study(quick=a.quick, log=None if a.quiet else _log,
+                            progress=not a.quiet, **args)
         wall = time.perf_counter() - t0
         bad = [k for k, r in result["rows"].items()
                if not all(math.isfinite(v) for v in r.values())]
@@ -234,7 +236,8 @@ def _cmd_design(a) -> int:
         write_json(tmp / "study.json", doc)
         plot_study(result, tmp)
     sys.stdout.write(md)
-    _log(f"difstar design: {wall:.1f} s; wrote {a.out}/ (table.md, study.json, psfs.png, "
+    log = (lambda msg: None) if a.quiet else _log
+    log(f"difstar design: {wall:.1f} s; wrote {a.out}/ (table.md, study.json, psfs.png, "
          "bokeh.png, pupils.png, history.png)")
     return 0
 
@@ -295,4 +298,8 @@ def register(subparsers, name: str) -> None:
     p.add_argument("--chunk", metavar="N",
                    help="with a sweep: at most N designs at a time (default: as many as "
                    "fit in the devices' memory)")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress on stderr (the study's bar per optimisation: step, "
+                   "objective, the parameter that moved most, time left; a sweep's "
+                   "designs done)")
     p.set_defaults(func=_cmd_design)

@@ -4,11 +4,9 @@ and :class:`FitResult`."""
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import gc
 import math
-import sys
 import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -18,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._param import step_map
+from .._progress import step_bar
 from ._data import FitData, _angle_from, _polar
 from ._model import ImageModel
 from ._params import FitInputError, _from_u, _to_u
@@ -275,7 +274,7 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     args = (fixed, steps, [t.arrays for t in _as_list(target)])
     residuals = jax.jit(with_batched_jacobian(residuals))
     u0 = jnp.asarray([_to_u(p) for p in params], float)
-    with _progress_bar(label, max_steps) as progress:
+    with step_bar(label, max_steps) as progress:
         def checked(k, loss, size, done):
             # the solver's first step only evaluates the start: its loss is the start's
             if k == 1 and not math.isfinite(loss):
@@ -283,7 +282,7 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                                     "units (wavelength in metres, pixel_scale in arcsec, "
                                     "Zernike in nm).")
             if progress is not None:
-                progress(k, loss, size, done)
+                progress(f"χ² {2 * loss:.6g}")
 
         sol = LMStepper(residuals, rtol=rtol, atol=atol).solve(
             u0, args, max_steps=max_steps, ftol=ftol, progress=checked)
@@ -293,26 +292,6 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     vals = {k: float(x) for k, x in values_of(sol.u, fixed, steps).items()}
     return vals, status, ok, sol.steps, 2.0 * sol.loss
 
-@contextlib.contextmanager
-def _progress_bar(label: str | None, max_steps: int):
-    """A ``progress(k, loss, step_size, done)`` for :meth:`LMStepper.solve`: a tqdm bar
-    on stderr named ``label`` (None: no bar), closed when the solve ends."""
-    if label is None:
-        yield None
-        return
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=max_steps, desc=label, unit="step", leave=False, file=sys.stderr,
-               dynamic_ncols=True)
-
-    def progress(k, loss, size, done):
-        bar.update(1)
-        bar.set_postfix_str(f"χ² {2 * loss:.6g}", refresh=False)
-
-    try:
-        yield progress
-    finally:
-        bar.close()
 
 def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
               residual: bool = True):

@@ -1,0 +1,48 @@
+"""Progress of long loops outside jit (solver and optimiser steps) on stderr: one tqdm
+bar per loop that shows the step, its figures and the time left, and is gone when the
+loop ends. The one place that decides how difstar draws a step-by-step progress line."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from collections.abc import Callable, Iterator
+
+import jax
+import numpy as np
+
+
+@contextlib.contextmanager
+def step_bar(label: str | None, total: int) -> Iterator[Callable[[str], None] | None]:
+    """Yield ``update(text)``, which counts one step and shows ``text`` beside the bar
+    (tqdm's rate and time left included); ``label`` None: yield None (quiet)."""
+    if label is None:
+        yield None
+        return
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=total, desc=label, unit="step", leave=False, file=sys.stderr,
+               dynamic_ncols=True)
+
+    def update(text: str = "") -> None:
+        if text:
+            bar.set_postfix_str(text, refresh=False)
+        bar.update(1)
+
+    try:
+        yield update
+    finally:
+        bar.close()
+
+
+def moved_most(before, after) -> tuple[str, float]:
+    """The leaf of two like PyTrees whose largest element changed most, as
+    (its path, the change); ("", 0.0) for trees without elements."""
+    name, most = "", 0.0
+    leaves = jax.tree_util.tree_leaves_with_path(after)
+    for (path, a), b in zip(leaves, jax.tree_util.tree_leaves(before)):
+        change = float(np.max(np.abs(np.asarray(a, float) - np.asarray(b, float)),
+                              initial=0.0))
+        if change > most:
+            name, most = jax.tree_util.keystr(path, simple=True, separator="."), change
+    return name, most
