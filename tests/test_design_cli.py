@@ -285,7 +285,6 @@ def test_study_progress_names_the_step_the_objective_and_what_moved(monkeypatch,
     monkeypatch.setattr(D, "design", stepping)
     monkeypatch.setattr(S, "measure", lambda family, setup, p, opts: (
         {}, np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((3, 2))))
-    monkeypatch.setenv("TQDM_MININTERVAL", "0")  # every tick drawn (not one per 0.1 s)
     S.iris_study(quick=True, steps=2, progress=True)
     err = capsys.readouterr().err
     assert "optimising the curvature" in err and "curvature and vertices" in err

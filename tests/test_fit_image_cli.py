@@ -87,6 +87,7 @@ def test_fit_image_cli_bracket_end_to_end(bracket, capsys):
     assert main([str(bracket), "--out", str(out)]) == 0
     shown = capsys.readouterr()
     assert "stage 0" in shown.err and "step" in shown.err  # progress of the solver's steps
+    assert "moved most: " in shown.err  # ... and the parameter each step moved most
     assert "wall time" in shown.out
     res = json.loads((out / "result.json").read_text())
     v = res["values"]

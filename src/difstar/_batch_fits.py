@@ -13,6 +13,7 @@ import dataclasses
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -257,7 +258,7 @@ class FitBatcher:
             def solve(self, u0, args, *, max_steps=100, ftol=1e-6, progress=None):
                 r = batcher._solve(self._job, u0, args, max_steps, ftol)
                 if progress is not None:
-                    progress(r.steps, r.loss, float("nan"), True)
+                    progress(r.steps, r.loss, float("nan"), True, np.asarray(r.u))
                 return SolveResult(u=jnp.asarray(r.u), steps=r.steps, accepted=r.accepted,
                                    loss_start=r.loss_start, loss=r.loss, result=r.result,
                                    seconds=r.seconds, compile_seconds=r.compile_seconds)

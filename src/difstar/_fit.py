@@ -250,6 +250,12 @@ def from_unconstrained(model: FitModel, u: jax.Array) -> dict[str, jax.Array]:
     return out
 
 
+def free_parts(model: FitModel, u) -> dict[str, np.ndarray]:
+    """The solver's vector ``u`` (unconstrained values) split by free parameter."""
+    ends = np.cumsum([model.params[k].size for k in model.free])
+    return dict(zip(model.free, np.split(np.asarray(u), ends[:-1])))
+
+
 def pupil_of(model: FitModel, x: dict):
     builder = model.camera.pupil
     if builder is not None:  # named parameters from x, the others at their defaults
@@ -447,7 +453,7 @@ class Fitter:
         return (self._predict_full if full else self._predict)(u)
 
     def solve(self, u0, args, *, max_steps: int = 100, ftol: float = 1e-6,
-              progress: Callable[[int, float, float, bool], None] | None = None
+              progress: Callable[[int, float, float, bool, np.ndarray], None] | None = None
               ) -> SolveResult:
         """See :meth:`difstar._lm.LMStepper.solve` (the stopping rule)."""
         return self._lm.solve(u0, args, max_steps=max_steps, ftol=ftol, progress=progress)

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from difstar._fit_truth import compare_truth
+from difstar._progress import moved_most
 
 SATURATION_GUARD = 4.0  # also mask pixels expected within this many σ of the white level
 
@@ -269,7 +270,7 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = 
     current prediction. Returns the final solve (:class:`difstar._lm.SolveResult`: its
     ``u``, and its linearisation for the covariance), the per-stage records and the last
     stage's solver ``args``."""
-    from difstar._fit import make_args
+    from difstar._fit import free_parts, make_args
 
     stages = []
     u = u0
@@ -282,16 +283,21 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = 
         args = make_args(model, data, u, hold=hold)
         if verbose:
             _log(f"difstar fit: stage {len(stages) + 1}: {label}")
-            _log(f"{'iter':>6} {'loss':>14} {'step size':>11}")
+            _log(f"{'iter':>6} {'loss':>14} {'step size':>11}  moved most")
+        last = [free_parts(model, u)]
 
-        def progress(k, loss, size, done):
+        def progress(k, loss, size, done, u_k):
             if k == 1 and not stages and "first_step" not in FIRST_STEP:
                 FIRST_STEP["first_step"] = seconds_since_process_start()
                 if verbose and FIRST_STEP["first_step"] is not None:
                     _log(f"difstar fit: first step done {FIRST_STEP['first_step']:.1f} s "
                          "after the command started")
             if verbose:
-                _log(f"{k:>6d} {loss:>14.6g} {size:>11.3g}" + ("  (done)" if done else ""))
+                parts = free_parts(model, u_k)
+                name, _ = moved_most(last[0], parts)
+                last[0] = parts
+                _log(f"{k:>6d} {loss:>14.6g} {size:>11.3g}  {name or '-'}"
+                     + ("  (done)" if done else ""))
 
         res = fitter.solve(u, args, max_steps=int(solver.get("max_steps", 100)),
                            ftol=float(solver.get("ftol", 1e-6)), progress=progress)

@@ -184,11 +184,11 @@ class LMStepper:
         return np.asarray(j), np.asarray(r)
 
     def solve(self, u0, args, *, max_steps: int = 100, ftol: float = 1e-6,
-              progress: Callable[[int, float, float, bool], None] | None = None
+              progress: Callable[[int, float, float, bool, np.ndarray], None] | None = None
               ) -> SolveResult:
         """Run up to ``max_steps`` steps from ``u0``; ``progress(k, loss, step_size,
-        done)`` is called after each (loss of the last accepted point; the LM step size
-        is the trust-region scale, 1/damping)."""
+        done, u)`` is called after each (loss of the last accepted point ``u``; the LM
+        step size is the trust-region scale, 1/damping)."""
         state = self._init(u0, args)
         u = u0
         loss0 = None
@@ -211,7 +211,7 @@ class LMStepper:
             if rule.update(loss, acc) and not done:
                 done = ok = True
             if progress is not None:
-                progress(k, loss, float(size), done)
+                progress(k, loss, float(size), done, np.asarray(u))
             if done:
                 break
         return SolveResult(

@@ -28,6 +28,7 @@ def step_bar(label: str | None, total: int) -> Iterator[Callable[[str], None] | 
         if text:
             bar.set_postfix_str(text, refresh=False)
         bar.update(1)
+        bar.refresh()  # every step drawn: a step takes far longer than drawing it
 
     try:
         yield update

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._param import step_map
-from .._progress import step_bar
+from .._progress import moved_most, step_bar
 from ._data import FitData, _angle_from, _polar
 from ._model import ImageModel
 from ._params import FitInputError, _from_u, _to_u
@@ -275,14 +275,18 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     residuals = jax.jit(with_batched_jacobian(residuals))
     u0 = jnp.asarray([_to_u(p) for p in params], float)
     with step_bar(label, max_steps) as progress:
-        def checked(k, loss, size, done):
+        last = [np.asarray(u0)]
+
+        def checked(k, loss, size, done, u):
             # the solver's first step only evaluates the start: its loss is the start's
             if k == 1 and not math.isfinite(loss):
                 raise FitInputError("fit: the model is not finite at the start; check the "
                                     "units (wavelength in metres, pixel_scale in arcsec, "
                                     "Zernike in nm).")
             if progress is not None:
-                progress(f"χ² {2 * loss:.6g}")
+                name, _ = moved_most(dict(zip(free, last[0])), dict(zip(free, u)))
+                last[0] = u
+                progress(f"χ² {2 * loss:.6g}, moved most: {name or '-'}")
 
         sol = LMStepper(residuals, rtol=rtol, atol=atol).solve(
             u0, args, max_steps=max_steps, ftol=ftol, progress=checked)
