@@ -305,3 +305,22 @@ def test_bad_optimiser_and_constraints_are_refused_by_name():
         LBFGSB(tol=-1.0)
     with pytest.raises(InputError, match=r"LBFGSB.first_step"):
         LBFGSB(first_step=0.0)
+
+
+def test_design_progress_bar_ticks_each_step_and_keeps_the_callback(capsys):
+    """``progress="label"``: a bar on stderr, one tick a step, with the objective and the
+    parameter that moved most; the user's callback still runs and can still stop it."""
+    seen = []
+
+    def stop_at_two(step, params, value, aux):
+        seen.append(step)
+        return step == 1
+
+    difstar.design(lambda p: jnp.sum((p["a"] - 1.0) ** 2) + p["b"] ** 2,
+                   {"a": jnp.zeros(2), "b": jnp.asarray(0.0)}, steps=5,
+                   callback=stop_at_two, progress="quadratic")
+    err = capsys.readouterr().err
+    assert seen == [0, 1]  # stopped by the callback after its second step
+    assert "quadratic" in err and "1/5" in err and "moved most: a" in err
+    difstar.design(lambda p: jnp.sum(p**2), jnp.ones(2), steps=2)
+    assert capsys.readouterr().err == ""

@@ -239,8 +239,8 @@ def test_study_hands_lbfgsb_and_its_bounds_to_design(monkeypatch):
 
     calls = []
 
-    def recorder(objective, start, *, constraints, optimiser, steps, callback):
-        assert callback is None  # no progress asked for
+    def recorder(objective, start, *, constraints, optimiser, steps, progress):
+        assert progress is None  # no progress asked for
         calls.append((constraints, optimiser, steps))
         return types.SimpleNamespace(best_params=start,
                                      history={"value": [1.0], "evaluations": [1]})
@@ -266,19 +266,23 @@ def test_study_progress_names_the_step_the_objective_and_what_moved(monkeypatch,
     """With ``progress``, each optimisation shows a bar on stderr ticking once a step,
     with the objective and the parameter that moved most since the last step (here the
     vertices' radial deviations, moved by 0.02 against 0.01 for the curvature); quiet
-    (``log=None``, no ``progress``), stderr stays empty."""
+    (``log=None``, no ``progress``), stderr stays empty. The optimiser is a stand-in
+    that steps through :func:`difstar._progress.ticking` as ``design`` does."""
     import types
 
     import difstar._design as D
     import difstar._design_study as S
+    from difstar._progress import step_bar, ticking
 
-    def stepping(objective, start, *, constraints, optimiser, steps, callback):
+    def stepping(objective, start, *, constraints, optimiser, steps, progress):
         p = start
-        for i in range(2):
-            p = type(start)(start.curvature + 0.01 * (i + 1),
-                            start.radial + 0.02 * (i + 1), start.angular)
-            if callback is not None:
-                callback(i, p, 0.5 - 0.1 * i, {})
+        with step_bar(progress, steps) as tick:
+            callback = None if tick is None else ticking(None, tick, start)
+            for i in range(2):
+                p = type(start)(start.curvature + 0.01 * (i + 1),
+                                start.radial + 0.02 * (i + 1), start.angular)
+                if callback is not None:
+                    assert callback(i, p, 0.5 - 0.1 * i, {}) is False  # does not stop it
         return types.SimpleNamespace(best_params=p,
                                      history={"value": [1.0], "evaluations": [1]})
 

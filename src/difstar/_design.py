@@ -43,6 +43,7 @@ from ._design_optimisers import (
     run_optimistix,
 )
 from ._param import Param
+from ._progress import step_bar, ticking
 from ._psf import plan_psf, psf
 from .pupils import AbstractPupil, CurvedIris, curved_iris_from_area
 
@@ -272,6 +273,7 @@ def design(
     optimiser=None,
     steps: int = 100,
     callback: Callable | None = None,
+    progress: str | None = None,
 ) -> DesignResult:
     """Minimise ``objective(params)`` from ``params0``.
 
@@ -292,6 +294,8 @@ def design(
         :data:`OPTIMISERS` (``"adam"``, ``"lbfgsb"``); :func:`optimiser_kind` decides.
     steps: iterations. callback(step, params, value, aux): called after every step with
         concrete values; returning True stops early.
+    progress: a label: a bar on stderr ticking once a step, with the objective, the
+        parameter that moved most and the time left (None: quiet).
 
     The step is compiled once (``eqx.filter_jit``); objectives must be jittable.
     """
@@ -306,36 +310,39 @@ def design(
     fn = _split_objective(objective)
     values, auxes, plist, evals = [], [], [], []
 
-    if kind == "lbfgsb":
-        bounds = _box_bounds(box)
+    with step_bar(progress, steps) as tick:
+        if tick is not None:
+            callback = ticking(callback, tick, params0)
+        if kind == "lbfgsb":
+            bounds = _box_bounds(box)
 
-        def record(p_, val, aux, n_eval):
-            values.append(float(val))
-            auxes.append({k: float(v) for k, v in aux.items()})
-            plist.append(jax.device_get(p_))
-            evals.append(int(n_eval))
+            def record(p_, val, aux, n_eval):
+                values.append(float(val))
+                auxes.append({k: float(v) for k, v in aux.items()})
+                plist.append(jax.device_get(p_))
+                evals.append(int(n_eval))
 
-        run_lbfgsb(fn, params0, bounds, optimiser, steps, record, callback)
-    else:
-        if box is None:
-            to_params, u = (lambda u_: u_), params0
-        elif isinstance(box, Param):
-            to_params = box.from_unconstrained
-            u = jax.tree.map(jnp.asarray, box.to_unconstrained(margin=START_MARGIN))
+            run_lbfgsb(fn, params0, bounds, optimiser, steps, record, callback)
         else:
-            to_params, u = box.constrain, box.unconstrain(params0)
+            if box is None:
+                to_params, u = (lambda u_: u_), params0
+            elif isinstance(box, Param):
+                to_params = box.from_unconstrained
+                u = jax.tree.map(jnp.asarray, box.to_unconstrained(margin=START_MARGIN))
+            else:
+                to_params, u = box.constrain, box.unconstrain(params0)
 
-        def loss(u_):
-            return fn(to_params(u_))
+            def loss(u_):
+                return fn(to_params(u_))
 
-        def record(u_, val, aux):
-            values.append(float(val))
-            auxes.append({k: float(v) for k, v in aux.items()})
-            plist.append(jax.device_get(to_params(u_)))
-            evals.append(len(values))  # one evaluation per step (see DesignResult)
+            def record(u_, val, aux):
+                values.append(float(val))
+                auxes.append({k: float(v) for k, v in aux.items()})
+                plist.append(jax.device_get(to_params(u_)))
+                evals.append(len(values))  # one evaluation per step (see DesignResult)
 
-        run = run_optimistix if kind == "optimistix" else run_optax
-        run(loss, u, optimiser, steps, record, callback, to_params)
+            run = run_optimistix if kind == "optimistix" else run_optax
+            run(loss, u, optimiser, steps, record, callback, to_params)
     vals = np.asarray(values)
     best = int(np.nanargmin(vals))
     keys = auxes[0].keys() if auxes else ()

@@ -22,8 +22,6 @@ import math
 import sys
 import time
 
-from ._progress import moved_most, step_bar
-
 STUDY_DEFAULTS = {
     "focal_length": 50e-3,
     "wavelength": 550e-9,
@@ -231,9 +229,7 @@ def iris_study(
     optimiser: ``"adam"`` (``optax.adam(learning_rate)`` on the sigmoid-unconstrained
     values) or ``"lbfgsb"`` (:class:`difstar._design.LBFGSB` within the bounds;
     ``learning_rate`` unused); ``steps`` iterations either way (L-BFGS-B may stop
-    sooner). ``log``: a line at each phase (None: quiet); ``progress``: a bar on stderr
-    per optimisation, one tick a step, with the objective, the parameter that moved most
-    and the time left."""
+    sooner). ``log``: a line a phase (None: none); ``progress``: a bar per optimisation."""
     import numpy as np
     import optax
 
@@ -252,24 +248,12 @@ def iris_study(
     objective = study_objective(family, setup, opts, bokeh_weight=bokeh_weight)
 
     def optimise(label, start, box):
-        with step_bar(label if progress else None, steps) as tick:
-            last = [start]
-
-            def callback(i, params, value, aux):
-                name, change = moved_most(last[0], params)
-                last[0] = params
-                tick(f"objective {value:.6g}, moved most: {name or '-'} ({change:.2g})")
-
-            return design(objective, start, constraints=box, steps=steps,
-                          optimiser=(optax.adam(learning_rate) if a["optimiser"] == "adam"
-                                     else a["optimiser"]),
-                          callback=None if tick is None else callback)
+        return design(objective, start, constraints=box, steps=steps,
+                      optimiser=optax.adam(learning_rate) if a["optimiser"] == "adam"
+                      else a["optimiser"], progress=label if progress else None)
 
     log = log or (lambda msg: None)
-
-    designs = {"straight": family.params(0.0)}
-    histories = {}
-    evaluations = {}
+    designs, histories, evaluations = {"straight": family.params(0.0)}, {}, {}
     t0 = time.perf_counter()
     box = family.bounds(curvature=(0.0, max_curvature))
     log(f"difstar design: optimising the curvature ({steps} {a['optimiser']} steps) ...")

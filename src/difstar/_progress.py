@@ -47,3 +47,18 @@ def moved_most(before, after) -> tuple[str, float]:
         if change > most:
             name, most = jax.tree_util.keystr(path, simple=True, separator="."), change
     return name, most
+
+
+def ticking(callback: Callable | None, tick: Callable[[str], None], start) -> Callable:
+    """A :func:`difstar.design` callback that ticks ``tick`` with the objective and the
+    parameter that moved most since the last step (from ``start``), then calls
+    ``callback`` (which may stop the run by returning True)."""
+    last = [start]
+
+    def each(step, params, value, aux):
+        name, change = moved_most(last[0], params)
+        last[0] = params
+        tick(f"objective {value:.6g}, moved most: {name or '-'} ({change:.2g})")
+        return callback is not None and callback(step, params, value, aux)
+
+    return each

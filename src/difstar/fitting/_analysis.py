@@ -149,8 +149,11 @@ def chi2_at(model: ImageModel, data, values: Mapping[str, float], target=None) -
     if target is None:
         target = [_PixelTarget(d) for d in _as_list(data)]
     v = {k: jnp.asarray(x, float) for k, x in values.items()}
-    r = np.asarray(_residual_fn(model, data, target)(v)[0])
-    return float(np.sum(r**2))
+    res = _residual_fn(model, data, target)
+    # one program, the data its arguments (as in the solver): a repeat's rounds and a
+    # hop's tries evaluate the same program, which JAX's compilation cache finds
+    chi2 = jax.jit(lambda v_, arrays: jnp.sum(res(v_, arrays)[0] ** 2))
+    return float(chi2(v, [t.arrays for t in _as_list(target)]))
 
 def spike_angles(image, centre=None, *, r_min=15.0, r_max=40.0, n_spikes=6, bins=720,
                  symmetric=True, near=None, window=8.0):

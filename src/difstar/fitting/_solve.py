@@ -184,11 +184,14 @@ def _residual_fn(model: ImageModel, data, target):
 def model_images(model: ImageModel, values: Mapping[str, float], data) -> list:
     """The model image of each capture's window at ``values`` (a fit's values, or a
     result.json's), as a list of arrays; ``data``: a :class:`FitData` or a list of them.
-    Not jitted: for one-off images (a stage's σ or spike directions, a figure)."""
+    One program (the values and the data its arguments, as in the solver), so that a
+    repeat's or a hop's re-runs of a stage find it in JAX's compilation cache."""
     datas = _as_list(data)
+    targets = [_PixelTarget(d) for d in datas]
     v = {k: jnp.asarray(x, float) for k, x in values.items()}
-    return [np.asarray(m) for m in _residual_fn(model.with_values(values), datas,
-                                                [_PixelTarget(d) for d in datas])(v)[1]]
+    res = _residual_fn(model.with_values(values), datas, targets)
+    images = jax.jit(lambda v_, arrays: res(v_, arrays)[1])
+    return [np.asarray(m) for m in images(v, [t.arrays for t in targets])]
 
 def values_of_capture(values: Mapping[str, Any], i: int) -> dict:
     """The values capture ``i`` of a fit saw: ``name@i`` read as ``name`` (a fit's
