@@ -127,15 +127,15 @@ def test_windows_change_nothing_but_the_work(config, q):
         assert 0 < g.pupil_window < g.n * g.oversample and 0 < g.source_window < g.n
         assert difstar._pruned.applies(g)  # pruned transforms + linear convolution
         g0 = dataclasses.replace(g, pupil_window=0, source_window=0)
-        a = difstar.simulate(camera, scene, g).cfa
-        b = difstar.simulate(camera, scene, g0).cfa
+
+        def loss(cs, grid):  # camera and scene together: one program per grid
+            cfa = difstar.simulate(cs[0], cs[1], grid).cfa
+            return jnp.sum(cfa ** 2), cfa
+
+        value_and_grad = eqx.filter_jit(eqx.filter_grad(loss, has_aux=True))
+        ga, a = value_and_grad((camera, scene), g)
+        gb, b = value_and_grad((camera, scene), g0)
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12 * float(b.max()))
-
-        def loss(cs, grid):  # camera and scene together: one gradient program per grid
-            return jnp.sum(difstar.simulate(cs[0], cs[1], grid).cfa ** 2)
-
-        ga = eqx.filter_grad(loss)((camera, scene), g)
-        gb = eqx.filter_grad(loss)((camera, scene), g0)
         for x, y in zip(jax.tree_util.tree_leaves(ga), jax.tree_util.tree_leaves(gb)):
             assert np.all(np.isfinite(np.asarray(x)))
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-9,
