@@ -52,17 +52,21 @@ def _loss(camera, scene, grid):
     return jnp.sum(pred.cfa * w) + jnp.sum(pred.image[1] * w)
 
 
+#: the chain as users run it: one compiled program per grid (not op by op)
+simulate = eqx.filter_jit(difstar.simulate)
+
+
 def _check_case(camera, scene, crop, *, accuracy, ref_padding, tol, ref_oversample=None):
     grid = choose_grid(camera, scene, crop=crop, accuracy=accuracy)
-    pred = difstar.simulate(camera, scene, grid)
+    pred = simulate(camera, scene, grid)
     for a in (pred.image, pred.cfa, pred.srgb, pred.psf):
         assert np.all(np.isfinite(np.asarray(a)))
-    g = eqx.filter_grad(lambda cs: _loss(cs[0], cs[1], grid))((camera, scene))
+    g = eqx.filter_jit(eqx.filter_grad(lambda cs: _loss(cs[0], cs[1], grid)))((camera, scene))
     leaves = [x for x in jax.tree_util.tree_leaves(g) if eqx.is_array(x)]
     assert leaves and all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
     ref_grid = choose_grid(camera, scene, crop=crop, padding=ref_padding,
                            oversample=ref_oversample)
-    ref = np.asarray(difstar.simulate(camera, scene, ref_grid).image)
+    ref = np.asarray(simulate(camera, scene, ref_grid).image)
     rad = scene_extent(camera, scene)["object_radius_px"]
     err = _err(np.asarray(pred.image), ref, crop, rad)
     assert err < tol, err
@@ -197,13 +201,14 @@ def test_defocus_exactly_zero_has_finite_gradient():
         cam = eqx.tree_at(lambda c: c.lens.defocus, camera, dz)
         return _loss(cam, scene, g_on)
 
-    d = jax.grad(loss)(jnp.asarray(0.0))
+    d = jax.jit(jax.grad(loss))(jnp.asarray(0.0))
     assert np.isfinite(float(d))
     eps = 2e-6
+    loss = jax.jit(loss)
     fd = (loss(jnp.asarray(eps)) - loss(jnp.asarray(-eps))) / (2 * eps)
     assert float(d) == pytest.approx(float(fd), rel=1e-3, abs=1e-6 * abs(float(fd)) + 1e-9)
-    a = difstar.simulate(camera, scene, grid).image
-    b = difstar.simulate(camera, scene, g_on).image
+    a = simulate(camera, scene, grid).image
+    b = simulate(camera, scene, g_on).image
     np.testing.assert_allclose(a, b, atol=1e-12)
 
 
@@ -270,7 +275,7 @@ def test_float32_against_float64():
     scene = eqx.tree_at(lambda s: s.sources, scene, (difstar.DiscSource(0.3e-3),))
     grid = choose_grid(camera, scene, crop=(64, 64), accuracy=3e-2)
     assert grid.n == r["n"]
-    pred = difstar.simulate(camera, scene, grid)
+    pred = simulate(camera, scene, grid)
     rad = scene_extent(camera, scene)["object_radius_px"]
     assert _err(np.asarray(r["image"]), np.asarray(pred.image), (64, 64), rad) < 1e-3
     assert float(np.mean((np.asarray(r["srgb"]) - np.asarray(pred.srgb)) ** 2)) < 1e-8
