@@ -306,9 +306,40 @@ def test_studies_are_refused_before_the_main_fit(tmp_path, capsys):
     assert "noise_from_residuals" in capsys.readouterr().err
     assert main([str(path), "--out", str(out), "--quiet", "--contaminated", "3,3,10"]) == 2
     assert "15 px or more" in capsys.readouterr().err
+    assert main([str(path), "--out", str(out), "--quiet", "--joint"]) == 2  # no copies
+    assert "--joint" in capsys.readouterr().err
+    fixed, *_ = _bright_star(tmp_path, free_rotation=False)
+    assert main([str(fixed), "--out", str(out), "--quiet", "--joint", "--shifted=1,0"]) == 2
+    assert "rotation fixed" in capsys.readouterr().err
     assert not out.exists()
     for bad in (["--shifted", "1"], ["--contaminated", "1.5,0,3"], ["--contaminated", "1,0,0.5"],
                 ["--hits", "-1"], ["--noise-limit", "0.5"]):
         with pytest.raises(SystemExit) as e:
             main([str(path), "--out", str(out), *bad])
         assert e.value.code == 2
+
+
+@pytest.mark.slow
+def test_joint_fit_of_the_star_and_its_moved_copies(tmp_path):
+    """--joint fits the star and a whole-pixel move of it together: one rotation for
+    both, each its own centre (a whole-pixel move is exact: x0@1 − x0@0 = 1,
+    y0@1 − y0@0 = −1) and flux. The copy carries the star's information again, so the
+    joint rotation's standard error is about the star's / √2 (the Fisher information of
+    two like captures; the move loses an edge row and column), smaller than either
+    star's alone, and the joint rotation is the star's within its error."""
+    path, *_ = _bright_star(tmp_path, stages=[{"free": "all", "max_steps": 30}])
+    out = tmp_path / "out"
+    assert main([str(path), "--out", str(out), "--quiet", "--shifted=1,-1", "--joint"]) == 0
+    res = json.loads((out / "result.json").read_text())
+    j = json.loads((out / "joint.json").read_text())
+    v = j["values"]
+    assert j["captures"][0] == "the star" and len(j["alone"]) == 2
+    assert v["x0@1"] - v["x0@0"] == pytest.approx(1.0, abs=0.01)
+    assert v["y0@1"] - v["y0@0"] == pytest.approx(-1.0, abs=0.01)
+    assert v["flux@1"] == pytest.approx(v["flux@0"], rel=3e-3)
+    star = res["errors"]["rotation"]
+    assert j["smaller_error_than_any_alone"] is True
+    assert j["rotation_error"] < min(a["rotation_error"] for a in j["alone"])
+    assert 0.6 < j["rotation_error"] / star < 0.8, j["rotation_error"] / star
+    assert abs(j["rotation"] - res["values"]["rotation"]) < star
+    assert "| the 2 stars together |" in (out / "joint.md").read_text()

@@ -57,6 +57,9 @@ simulate = eqx.filter_jit(difstar.simulate)
 
 
 def _check_case(camera, scene, crop, *, accuracy, ref_padding, tol, ref_oversample=None):
+    """Finite output and gradients on the default grid; with ``ref_padding``, also the
+    error outside the core against the fft grid at that padding (difstar at other
+    settings: a consistency check, not a truth); None: no such comparison."""
     grid = choose_grid(camera, scene, crop=crop, accuracy=accuracy)
     pred = simulate(camera, scene, grid)
     for a in (pred.image, pred.cfa, pred.srgb, pred.psf):
@@ -64,6 +67,8 @@ def _check_case(camera, scene, crop, *, accuracy, ref_padding, tol, ref_oversamp
     g = eqx.filter_jit(eqx.filter_grad(lambda cs: _loss(cs[0], cs[1], grid)))((camera, scene))
     leaves = [x for x in jax.tree_util.tree_leaves(g) if eqx.is_array(x)]
     assert leaves and all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
+    if ref_padding is None:
+        return grid, pred
     ref_grid = choose_grid(camera, scene, crop=crop, padding=ref_padding,
                            oversample=ref_oversample)
     ref = np.asarray(simulate(camera, scene, ref_grid).image)
@@ -75,13 +80,14 @@ def _check_case(camera, scene, crop, *, accuracy, ref_padding, tol, ref_oversamp
 
 def test_f1_8_undersampled_pixels_get_oversampled():
     """f/1.8 with 3.9 µm pixels: the pixel grid undersamples the intensity, so the chain
-    runs on the engine's sub-pixel grid (its accuracy against an independent camera:
-    tests/test_independent_camera.py); finite output and gradients, and the rule-1 fft
-    grid at finer padding agrees outside the core to its own sampling error (it samples
-    the PSF at the pixel centres: 9 % there, relative RMS beyond the core)."""
+    runs on the engine's sub-pixel grid, with finite output and gradients. Its accuracy
+    is checked against the independent camera, which integrates true pixels
+    (tests/test_independent_camera.py, f/1.8 in focus: within 3e-4 of the peak). The fft grid
+    at finer padding is no reference here: it samples the PSF at the pixel centres, 9 %
+    off beyond the core."""
     camera = _camera(1.8)
-    grid, _ = _check_case(camera, _scene(), (32, 32), accuracy=3e-2, ref_padding=4.0,
-                          ref_oversample=None, tol=0.15)
+    grid, _ = _check_case(camera, _scene(), (32, 32), accuracy=3e-2, ref_padding=None,
+                          tol=None)
     assert grid.method == "engine" and grid.oversample >= 9  # 2 × 4.9 cycles/px at 450 nm
 
 

@@ -54,6 +54,10 @@ def _add_arguments(ap) -> None:
                     help="also write noise_limit.json/.md: the rotation's Cramér–Rao bound "
                     "for the star and for stars F times fainter (1 for another as bright; "
                     "needs a noise_from_residuals stage), e.g. 1,2,4,8,16,32")
+    ap.add_argument("--joint", action="store_true",
+                    help="also fit the star and its --shifted and --contaminated copies "
+                    "together, as the stars of one field (one pupil, rotation and wavefront; "
+                    "each its own centre, flux and background), and write joint.json/.md")
 
 
 def _positive_int(text: str) -> int:
@@ -117,7 +121,8 @@ def _cmd(a) -> int:
         run(a.manifest, a.out, verbose=not a.quiet, max_steps=a.max_steps,
             overwrite=a.overwrite, robustness=a.robustness, seed=a.seed,
             fainter=a.fainter, rough_about=a.rough_about, shifted=tuple(a.shifted),
-            contaminated=tuple(a.contaminated), hits=a.hits, noise_limit=a.noise_limit)
+            contaminated=tuple(a.contaminated), hits=a.hits, noise_limit=a.noise_limit,
+            joint=a.joint)
     except FitInputError as e:
         raise ValueError(f"difstar fit-image: {e}") from None
     return 0

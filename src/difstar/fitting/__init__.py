@@ -72,6 +72,7 @@ from ._studies import contaminated_image as contaminated_image
 from ._studies import fit_changed_copy as fit_changed_copy
 from ._studies import fit_contaminated_copy as fit_contaminated_copy
 from ._studies import fit_fainter_copy as fit_fainter_copy
+from ._studies import fit_joint as fit_joint
 from ._studies import fit_shifted_copy as fit_shifted_copy
 from ._studies import noise_limit as noise_limit
 from ._studies import shifted_image as shifted_image
@@ -80,7 +81,7 @@ __all__ = [
     "FitData", "FitInputError", "FitResult", "ImageModel", "Light", "Noise", "Param",
     "PupilBuilder", "chi2_at", "chi2_slice", "contaminated_image", "data_intensity",
     "fainter_copy", "fit", "fit_changed_copy", "fit_contaminated_copy", "fit_fainter_copy",
-    "fit_shifted_copy", "iris_pupil", "jwst_pupil", "load_manifest", "model_images",
+    "fit_joint", "fit_shifted_copy", "iris_pupil", "jwst_pupil", "load_manifest", "model_images",
     "noise_from_residuals", "noise_limit", "noise_limited_errors",
     "obstructed_circle_pupil", "reject_outliers", "resolve_data_path", "run_fit_image",
     "shifted_image", "spike_angles",

@@ -78,7 +78,7 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         seed: int = 0, fainter: tuple[float, ...] = (), rough_about: str = "start",
         shifted: tuple[tuple[float, float], ...] = (),
         contaminated: tuple[tuple[int, int, float], ...] = (), hits: int = 6,
-        noise_limit: tuple[float, ...] = ()) -> dict:
+        noise_limit: tuple[float, ...] = (), joint: bool = False) -> dict:
     """Fit the manifest's model to its data; write result.json, fit.png, model.npy into
     ``out``, a folder difstar creates (whole or not at all; see ``io._output``). Then,
     each into the same folder (:mod:`difstar.fitting._studies`):
@@ -96,7 +96,9 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
       times fainter at (dx, dy) whole px and ``hits`` hot pixels (seed ``seed`` + i)
       added (:func:`difstar.fitting.fit_contaminated_copy`): contaminated.json / .md;
     - ``noise_limit`` = (f1, …): the rotation's Cramér–Rao bound for the star and for
-      stars f times fainter (:func:`difstar.fitting.noise_limit`): noise_limit.json / .md.
+      stars f times fainter (:func:`difstar.fitting.noise_limit`): noise_limit.json / .md;
+    - ``joint``: fit the star and its moved and contaminated copies together, one
+      rotation for all (:func:`difstar.fitting.fit_joint`): joint.json / .md.
 
     A study the manifest cannot run is refused before the main fit."""
     import jax
@@ -110,7 +112,7 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
     loaded = load_manifest(manifest)  # read once here, for the checks and the main fit
     _studies._check_studies(manifest, loaded, fainter=fainter, shifted=shifted,
                             contaminated=contaminated, hits=hits, seed=seed,
-                            noise_limit=noise_limit)
+                            noise_limit=noise_limit, joint=joint)
     # every file the manifest made difstar read is an input: never replaced, never held
     inputs = [manifest, *loaded[2].get("inputs", ())]
     with output_dir(out, overwrite=overwrite, inputs=inputs, command="fit-image") as tmp:
@@ -122,10 +124,15 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
         kw = dict(max_steps=max_steps, verbose=verbose)
         if fainter:
             _studies._fainter(manifest, tmp, summary, fainter, seed, **kw)
+        alone = []  # the copies' own fits, for the joint fit's comparison
         if shifted:
-            _studies._shifted(manifest, tmp, summary, shifted, **kw)
+            alone += _studies._shifted(manifest, tmp, summary, shifted, **kw)["copies"]
         if contaminated:
-            _studies._contaminated(manifest, tmp, summary, contaminated, hits, seed, **kw)
+            alone += _studies._contaminated(manifest, tmp, summary, contaminated, hits, seed,
+                                            **kw)["copies"]
+        if joint:
+            _studies._joint(manifest, tmp, summary, shifted, contaminated, hits, seed, alone,
+                            **kw)
         if noise_limit:
             _studies._noise_limit(manifest, tmp, summary, noise_limit, verbose=verbose)
         return summary

@@ -11,6 +11,9 @@ noise limit of the fit's parameters.
 - contaminated copies (:func:`contaminated_image`, :func:`fit_contaminated_copy`): a
   fainter neighbour and hot pixels added, which the model does not describe;
 - any other change of the image (:func:`fit_changed_copy`, e.g. its mirror image);
+- the star and its moved and contaminated copies fitted together (:func:`fit_joint`):
+  one pupil, rotation and wavefront for all, each its own centre, flux and background,
+  as the stars of one field are;
 - the noise limit (:func:`noise_limit`): the Cramér–Rao standard errors for the star and
   for stars of its kind ``f`` times fainter, and how likely two such stars agree.
 
@@ -136,6 +139,32 @@ def fit_contaminated_copy(manifest, *, neighbour=(26, 15, 30.0), hits=6, seed=0,
     return fit_changed_copy(
         manifest, lambda im: contaminated_image(im, neighbour=neighbour, hits=hits, seed=seed),
         max_steps=max_steps, verbose=verbose)
+
+
+def _copy_changes(shifted=(), contaminated=(), hits=6, seed=0) -> list:
+    """The image changes that make the moved copies, then the contaminated ones (the
+    i-th with hot-pixel seed ``seed`` + i), as :func:`fit_changed_copy` takes them."""
+    changes = [lambda im, d=d: shifted_image(im, *d) for d in shifted]
+    changes += [lambda im, n=n, i=i: contaminated_image(im, neighbour=n, hits=hits,
+                                                        seed=seed + i)
+                for i, n in enumerate(contaminated)]
+    return changes
+
+
+def fit_joint(manifest, changes, *, max_steps=None, verbose=False):
+    """Fit, by ``manifest``'s stages and starts, its star and a copy of it changed by each
+    of ``changes`` together (as :func:`fit_changed_copy` changes it): the stars of one
+    field, each with its own ``x0``, ``y0``, ``flux``, ``background`` (``name@i``: the
+    star is capture 0) and everything else (the pupil, its rotation, the wavefront, the
+    detector) shared. Returns the joint FitResult."""
+    from ._manifest import load_manifest
+    from ._procedure import fit
+
+    model, data, opts = load_manifest(manifest)
+    datas = [data] + [load_manifest(manifest, transform=c)[1] for c in changes]
+    return fit(model, datas, stages=opts["stages"], starts=opts["starts"],
+               max_steps=max_steps or opts["max_steps"], verbose=verbose,
+               per_capture=opts["per_capture"])
 
 
 def _copy_noise(summary, option="--fainter"):
@@ -409,7 +438,7 @@ def _noise_limit(manifest, out, summary, factors, *, verbose) -> dict:
 
 
 def _check_studies(manifest, loaded, *, fainter=(), shifted=(), contaminated=(), hits=6,
-                   seed=0, noise_limit=()) -> None:
+                   seed=0, noise_limit=(), joint=False) -> None:
     """Refuses, before the main fit, studies the manifest cannot run: copies made fainter
     or a noise limit without a noise_from_residuals stage or of several captures, a noise
     limit of a rotation held fixed, a change of the image the manifest's checks refuse."""
@@ -428,9 +457,56 @@ def _check_studies(manifest, loaded, *, fainter=(), shifted=(), contaminated=(),
     if noise_limit and "rotation" not in model.free:
         raise FitInputError("--noise-limit: the manifest holds the rotation fixed; free it or "
                             "leave --noise-limit out.")
-    changes = [lambda im, d=d: shifted_image(im, *d) for d in shifted]
-    changes += [lambda im, n=n, i=i: contaminated_image(im, neighbour=n, hits=hits,
-                                                        seed=seed + i)
-                for i, n in enumerate(contaminated)]
-    for change in changes:  # each copy read as the manifest reads its file
+    if joint and not (shifted or contaminated):
+        raise FitInputError("--joint fits the star together with its --shifted and "
+                            "--contaminated copies; add at least one, or leave --joint out.")
+    if joint and "rotation" not in model.free:
+        raise FitInputError("--joint: the manifest holds the rotation fixed; free it or "
+                            "leave --joint out.")
+    if joint and isinstance(data, list):
+        raise FitInputError("--joint takes a manifest with one capture (its data is a list "
+                            "of captures, which it fits together already); leave --joint "
+                            "out.")
+    for change in _copy_changes(shifted, contaminated, hits, seed):  # read as the fit will
         load_manifest(manifest, transform=change)
+
+
+def _joint(manifest, out, summary, shifted, contaminated, hits, seed, alone, *, max_steps,
+           verbose) -> dict:
+    """Fit the star and its moved and contaminated copies together (:func:`fit_joint`);
+    compare the joint rotation and its standard error with each star's alone (the star's
+    fit, and ``alone``: the copies' rows of the shifted and contaminated studies, in
+    order). Writes joint.json and joint.md into ``out``."""
+    labels = ([f"moved by ({dx:g}, {dy:g}) px" for dx, dy in shifted]
+              + [f"contaminated ({dx:g}, {dy:g}) × 1/{f:g}" for dx, dy, f in contaminated])
+    t = time.perf_counter()
+    res = fit_joint(manifest, _copy_changes(shifted, contaminated, hits, seed),
+                    max_steps=max_steps)
+    seconds = time.perf_counter() - t
+    rot, err = res.values.get("rotation"), res.errors.get("rotation")
+    singles = [("the star", summary["values"].get("rotation"),
+                summary["errors"].get("rotation"))]
+    singles += [(lab, r["rotation"], r["rotation_error"]) for lab, r in zip(labels, alone)]
+    best_alone = min((e for _, _, e in singles if e is not None), default=None)
+    study = {"captures": ["the star", *labels], "rotation": rot, "rotation_error": err,
+             "alone": [{"capture": lab, "rotation": r, "rotation_error": e}
+                       for lab, r, e in singles],
+             "smaller_error_than_any_alone": (None if err is None or best_alone is None
+                                              else bool(err < best_alone)),
+             "values": res.values, "errors": res.errors, "status": res.status,
+             "chi2_dof": res.chi2_dof, "seconds": seconds}
+    if verbose:
+        print(f"joint fit of {len(singles)} stars: rotation {rot:.4f}° {_pm(err)} "
+              f"({seconds:.0f} s)", flush=True)
+    _dump(Path(out) / "joint.json", study)
+    lines = ["The star and its copies fitted together, as the stars of one field: one pupil, "
+             "rotation and wavefront for all, each its own centre, flux and background. "
+             "The copies are made from the star's own pixels, so their noise is the star's: "
+             "the joint standard error is smaller than any one star's partly because the "
+             "same noise is counted more than once.", "",
+             "| fit | rotation (°) |", "|---|---|"]
+    lines += [f"| {lab} alone | {r:.4f} {_pm(e)} |" for lab, r, e in singles if r is not None]
+    lines += [f"| the {len(singles)} stars together | {rot:.4f} {_pm(err)} |", "",
+              f"χ²/dof {res.chi2_dof:.4g}, {res.status}, {seconds:.0f} s."]
+    Path(out, "joint.md").write_text("\n".join(lines) + "\n")
+    return study
