@@ -172,7 +172,7 @@ def _cmd_sweep(a) -> int:
     check_output_free(Path(a.out), overwrite=a.overwrite, inputs=inputs)
     t0 = time.perf_counter()
     plans = []
-    log = (lambda msg: None) if a.quiet else _log
+    log = _logger(a.quiet)
     log(f"difstar design: {len(designs)} designs on {n_dev} device(s) ...")
     with output_dir(Path(a.out), overwrite=a.overwrite, inputs=inputs,
                     command="design") as tmp:
@@ -201,6 +201,11 @@ def _cmd_sweep(a) -> int:
     return 0
 
 
+def _logger(quiet: bool):
+    """The command's progress lines on stderr, or nothing with --quiet."""
+    return (lambda msg: None) if quiet else _log
+
+
 def _cmd_design(a) -> int:
     from difstar._validate import InputError
     from difstar.io._output import check_output_free, output_dir, write_json
@@ -220,9 +225,9 @@ def _cmd_design(a) -> int:
     args.pop("learning_rate")
     check_output_free(Path(a.out), overwrite=a.overwrite)
     t0 = time.perf_counter()
+    log = _logger(a.quiet)
     with output_dir(Path(a.out), overwrite=a.overwrite, command="design") as tmp:
-        result = iris_study(quick=a.quick, log=None if a.quiet else _log,
-                            progress=not a.quiet, **args)
+        result = iris_study(quick=a.quick, log=log, progress=not a.quiet, **args)
         wall = time.perf_counter() - t0
         bad = [k for k, r in result["rows"].items()
                if not all(math.isfinite(v) for v in r.values())]
@@ -236,7 +241,6 @@ def _cmd_design(a) -> int:
         write_json(tmp / "study.json", doc)
         plot_study(result, tmp)
     sys.stdout.write(md)
-    log = (lambda msg: None) if a.quiet else _log
     log(f"difstar design: {wall:.1f} s; wrote {a.out}/ (table.md, study.json, psfs.png, "
          "bokeh.png, pupils.png, history.png)")
     return 0

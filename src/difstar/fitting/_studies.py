@@ -141,6 +141,14 @@ def fit_contaminated_copy(manifest, *, neighbour=(26, 15, 30.0), hits=6, seed=0,
         max_steps=max_steps, verbose=verbose)
 
 
+def _moved_label(dx, dy) -> str:
+    return f"moved by ({dx:g}, {dy:g}) px"
+
+
+def _contaminated_label(dx, dy, f) -> str:
+    return f"contaminated ({dx:g}, {dy:g}) × 1/{f:g}"
+
+
 def _copy_changes(shifted=(), contaminated=(), hits=6, seed=0) -> list:
     """The image changes that make the moved copies, then the contaminated ones (the
     i-th with hot-pixel seed ``seed`` + i), as :func:`fit_changed_copy` takes them."""
@@ -379,7 +387,7 @@ def _shifted(manifest, out, summary, moves, *, max_steps, verbose) -> dict:
     def expected(dx, dy):  # the centre moves with the star
         return lambda k, v: v + {"x0": dx, "y0": dy}.get(k.split("@")[0], 0.0)
 
-    copies = [(f"({dx:g}, {dy:g})", f"moved by ({dx:g}, {dy:g}) px", {"shift": [dx, dy]},
+    copies = [(f"({dx:g}, {dy:g})", _moved_label(dx, dy), {"shift": [dx, dy]},
                lambda dx=dx, dy=dy: fit_shifted_copy(manifest, dx, dy, max_steps=max_steps),
                expected(dx, dy)) for dx, dy in moves]
     return _copy_study(
@@ -397,7 +405,7 @@ def _contaminated(manifest, out, summary, neighbours, hits, seed, *, max_steps,
     """Fit the star with each neighbour of ``neighbours`` and ``hits`` hot pixels (seed
     ``seed`` + i for the i-th copy) added; compare with the star's fit."""
     copies = [(f"({dx:g}, {dy:g}), × 1/{f:g}; {hits} ({seed + i})",
-               f"contaminated ({dx:g}, {dy:g}) × 1/{f:g}",
+               _contaminated_label(dx, dy, f),
                {"neighbour": [dx, dy, f], "hits": hits, "seed": seed + i},
                lambda n=(dx, dy, f), s=seed + i: fit_contaminated_copy(
                    manifest, neighbour=n, hits=hits, seed=s, max_steps=max_steps),
@@ -457,16 +465,18 @@ def _check_studies(manifest, loaded, *, fainter=(), shifted=(), contaminated=(),
     if noise_limit and "rotation" not in model.free:
         raise FitInputError("--noise-limit: the manifest holds the rotation fixed; free it or "
                             "leave --noise-limit out.")
-    if joint and not (shifted or contaminated):
-        raise FitInputError("--joint fits the star together with its --shifted and "
-                            "--contaminated copies; add at least one, or leave --joint out.")
-    if joint and "rotation" not in model.free:
-        raise FitInputError("--joint: the manifest holds the rotation fixed; free it or "
-                            "leave --joint out.")
-    if joint and isinstance(data, list):
-        raise FitInputError("--joint takes a manifest with one capture (its data is a list "
-                            "of captures, which it fits together already); leave --joint "
-                            "out.")
+    if joint:
+        if not (shifted or contaminated):
+            raise FitInputError("--joint fits the star together with its --shifted and "
+                                "--contaminated copies; add at least one, or leave --joint "
+                                "out.")
+        if "rotation" not in model.free:
+            raise FitInputError("--joint: the manifest holds the rotation fixed; free it or "
+                                "leave --joint out.")
+        if isinstance(data, list):
+            raise FitInputError("--joint takes a manifest with one capture (its data is a "
+                                "list of captures, which it fits together already); leave "
+                                "--joint out.")
     for change in _copy_changes(shifted, contaminated, hits, seed):  # read as the fit will
         load_manifest(manifest, transform=change)
 
@@ -477,8 +487,8 @@ def _joint(manifest, out, summary, shifted, contaminated, hits, seed, alone, *, 
     compare the joint rotation and its standard error with each star's alone (the star's
     fit, and ``alone``: the copies' rows of the shifted and contaminated studies, in
     order). Writes joint.json and joint.md into ``out``."""
-    labels = ([f"moved by ({dx:g}, {dy:g}) px" for dx, dy in shifted]
-              + [f"contaminated ({dx:g}, {dy:g}) × 1/{f:g}" for dx, dy, f in contaminated])
+    labels = ([_moved_label(*d) for d in shifted]
+              + [_contaminated_label(*n) for n in contaminated])
     t = time.perf_counter()
     res = fit_joint(manifest, _copy_changes(shifted, contaminated, hits, seed),
                     max_steps=max_steps)
