@@ -108,13 +108,15 @@ def test_param_errors():
 
 
 def test_wrap_rotation_and_response_error():
+    from difstar._fit_truth import response_error, wrap_rotation
+
     period = 2 * math.pi / 7
-    assert abs(F.wrap_rotation(period + 0.01, 7) - 0.01) < 1e-12
-    assert abs(F.wrap_rotation(-period - 0.01, 7) + 0.01) < 1e-12
+    assert abs(wrap_rotation(period + 0.01, 7) - 0.01) < 1e-12
+    assert abs(wrap_rotation(-period - 0.01, 7) + 0.01) < 1e-12
     x = {"phi0": np.array([0.1, 0.1, 0.1]), "toe": np.full(3, 0.02), "knee": np.full(3, 40.0)}
-    np.testing.assert_allclose(F.response_error(x, x, (1e-4, 10.0)), 0.0, atol=0)
+    np.testing.assert_allclose(response_error(x, x, (1e-4, 10.0)), 0.0, atol=0)
     y = dict(x, phi0=x["phi0"] * 1.01)  # 1 % exposure scale: < 1 % of the range
-    e = F.response_error(y, x, (1e-4, 10.0))
+    e = response_error(y, x, (1e-4, 10.0))
     assert np.all(e > 1e-3) and np.all(e < 1e-2)
 
 
@@ -248,6 +250,36 @@ def test_campaign_captures_come_from_the_current_model(tmp_path):
             f"{f.name}: the committed capture differs from today's synthesis (max "
             f"{d.max()} DN, {np.mean(d > 0):.2%} of pixels); regenerate it with "
             "`difstar synth fit/synthetic-paper-camera/manifest.json --overwrite`")
+
+
+def test_sensor_only_residuals_are_the_whole_chains_with_the_optics_held():
+    """The restarts' cheap solve (each channel's φ0, toe and knee on linear images
+    predicted once) must see what the whole chain sees: moving only one channel's sensor
+    parameters away from where the images were predicted, its residuals equal
+    ``simulate``'s, and its Jacobian in those parameters equals the whole chain's."""
+    free = dict(FREE, knee=(5.0, 200.0), toe=(0.0, 0.1))
+    model = _model(free)
+    fitter, data = _data(model)
+    u0 = F.to_unconstrained(model)
+    args = F.make_args(model, data, u0)
+    for ch in range(3):
+        sargs = fitter.sensor_args(u0, data, ch)
+        index = np.asarray(sargs["index"])
+        assert len(index) == 3  # phi0, toe and knee of channel ch
+        v = np.asarray(u0)[index] + np.array([0.2, -0.3, 0.5])
+        u = np.asarray(u0).copy()
+        u[index] = v
+        whole = fitter.residuals(jnp.asarray(u), args)
+        sensor = fitter._sensor_fn(jnp.asarray(v), sargs)
+        np.testing.assert_allclose(np.concatenate([np.ravel(sensor[k]) for k in sensor]),
+                                   whole, rtol=1e-9, atol=1e-9 * np.abs(whole).max())
+        j_whole = np.asarray(fitter._jac(jnp.asarray(u), args))[:, index]
+        j_sensor = np.asarray(jax.jacfwd(lambda v: jnp.concatenate(
+            [x.ravel() for x in jax.tree_util.tree_leaves(fitter._sensor_fn(v, sargs))]))(
+                jnp.asarray(v)))
+        np.testing.assert_allclose(j_sensor, j_whole, rtol=1e-7,
+                                   atol=1e-7 * np.abs(j_whole).max())
+        assert fitter.sensor_loss(u, sargs) == pytest.approx(fitter.loss(u, args), rel=1e-10)
 
 
 def test_response_curve_restarts_leave_a_shallow_basin():

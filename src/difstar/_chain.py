@@ -249,15 +249,22 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
     return jnp.stack(psfs), jnp.stack(imgs)
 
 
+def read_out(image, exposure_time, sen: Sensor):
+    """(ζ, RAW mosaic) of the linear image ``image`` (3, h, w) exposed for
+    ``exposure_time`` by the sensor ``sen``: the one place where light becomes pixel
+    values (``simulate``, and fits that move only the sensor's parameters)."""
+    # stored apart (see _xla.stored): ζ is an output and the mosaic's input; otherwise the
+    # mosaic re-evaluates it and its square roots and exponentials are stored as arrays
+    zeta = stored(lambda a: sensor(a[0], exposure_time=a[1], phi0=a[2], response=a[3]),
+                  (image, exposure_time, sen.phi0, sen.response), sen.phi0[0])
+    return zeta, mosaic(zeta, sen.pattern)
+
+
 def _finish(camera: Camera, scene: Scene, grid: Grid, g: Geometry, psfs, image) -> Prediction:
     sen = camera.sensor
     # a uniform radiance through the pupil (the PSF sums to 1: it stays uniform)
     image = image + radiometry(camera, scene, g).extended_scale * scene.background[:, None, None]
-    # stored apart (see _xla.stored): ζ is an output and the mosaic's input; otherwise the
-    # mosaic re-evaluates it and its square roots and exponentials are stored as arrays
-    zeta = stored(lambda a: sensor(a[0], exposure_time=a[1], phi0=a[2], response=a[3]),
-                  (image, scene.exposure_time, sen.phi0, sen.response), sen.phi0[0])
-    cfa = mosaic(zeta, sen.pattern)
+    zeta, cfa = read_out(image, scene.exposure_time, sen)
     srgb = None
     if not grid.raw_only:
         srgb = render_srgb(
@@ -268,6 +275,6 @@ def _finish(camera: Camera, scene: Scene, grid: Grid, g: Geometry, psfs, image) 
 
 __all__ = [
     "Camera", "Lens", "Sensor", "Scene", "Grid", "Prediction", "DiscSource",
-    "PointSource", "sources_image",
+    "PointSource", "sources_image", "read_out",
     "simulate", "geometry_of", "check_sampling", "needs_defocus", "SamplingError",
 ]

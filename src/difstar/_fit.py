@@ -24,7 +24,7 @@ Parameters (name → shape, unit):
   spherical aberration), normalised over a circle of the camera's ``zernike_radius``
   (nm, as in image-fit manifests);
 - ``rotation`` (), rad — angle of the first vertex (a regular n-gon is only defined
-  modulo 2π/n; :func:`wrap_rotation` compares angles accordingly);
+  modulo 2π/n; :func:`difstar._fit_truth.wrap_rotation` compares angles accordingly);
 - ``vertex_radial`` (n,), fraction of the circumradius, and ``vertex_angular`` (n,),
   rad — per-vertex deviations from the regular polygon, mean removed (the mean is the
   circumradius and the rotation); with both free the vertices are free;
@@ -50,13 +50,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, simulate
+from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, read_out, simulate
 from ._image import DiscSource
 from ._lm import LMStepper, SolveResult, with_batched_jacobian
 from ._param import Param
 from ._pupil import Polygon, RegularPolygon
 from ._pupil_curved import CurvedIris
-from ._sensor import Response, response_curve
+from ._sensor import Response
 from ._zernike import Zernike
 
 SHARED = ("circumradius", "curvature", "rotation", "vertex_radial", "vertex_angular",
@@ -288,6 +288,25 @@ def wavefront_of(model: FitModel, x: dict):
     return Zernike(terms, radius=model.camera.zernike_radius)
 
 
+def sensor_of(model: FitModel, x: dict) -> Sensor:
+    """The camera's sensor with the exposure scale φ0 and response curves of ``x``."""
+    cc = model.camera
+    return Sensor(
+        pixel_pitch=cc.pixel_pitch, pattern=cc.pattern, wavelengths=cc.wavelengths,
+        phi0=x["phi0"], response=Response(toe=x["toe"], knee=x["knee"]),
+        white_balance=cc.white_balance, colour_matrix=cc.colour_matrix,
+    )
+
+
+def exposure_times(model: FitModel, x: dict, config: str):
+    """The exposure times (K,) in seconds of ``config``'s captures: nominal × their
+    ``exposure_scale/<capture>`` (1 where absent)."""
+    return jnp.stack([
+        c.exposure_time * x.get(f"exposure_scale/{c.name}", jnp.asarray(1.0))
+        for c in model.captures_of(config)
+    ])
+
+
 def camera_scene(model: FitModel, x: dict, config: str):
     """From physical parameter values ``x``: the camera and scene of ``config`` (its
     first capture) and, for all its captures, the exposure times (K,) in seconds and
@@ -300,16 +319,9 @@ def camera_scene(model: FitModel, x: dict, config: str):
         pupil_magnification=cc.pupil_magnification, defocus=x.get(f"defocus/{config}"),
         wavefront=wavefront_of(model, x),
     )
-    sensor = Sensor(
-        pixel_pitch=cc.pixel_pitch, pattern=cc.pattern, wavelengths=cc.wavelengths,
-        phi0=x["phi0"], response=Response(toe=x["toe"], knee=x["knee"]),
-        white_balance=cc.white_balance, colour_matrix=cc.colour_matrix,
-    )
-    camera = Camera(lens, sensor)
+    camera = Camera(lens, sensor_of(model, x))
     caps = model.captures_of(config)
-    ts = jnp.stack([
-        c.exposure_time * x.get(f"exposure_scale/{c.name}", jnp.asarray(1.0)) for c in caps
-    ])
+    ts = exposure_times(model, x, config)
     bg = x.get("background", jnp.zeros(3))
     scene = Scene(object_distance=cfg.object_distance,
                   sources=(DiscSource(x["source_radius"]),), exposure_time=ts[0], background=bg)
@@ -381,6 +393,46 @@ def make_residual_fn(model: FitModel, *, jac_batch: int | None = None, mesh=None
     return jax.jit(fn)
 
 
+#: The sensor's parameters (one per channel): they act after the optics, on the linear
+#: image, each only on its channel's pixels.
+SENSOR_PARAMS = ("phi0", "toe", "knee")
+
+
+def sensor_index(model: FitModel, channel: int) -> np.ndarray:
+    """The places in the solver's vector ``u`` of channel ``channel``'s free
+    :data:`SENSOR_PARAMS`."""
+    out, i = [], 0
+    for k in model.free:
+        n = model.params[k].size
+        if base_name(k) in SENSOR_PARAMS:
+            out.append(i + channel)
+        i += n
+    return np.asarray(out, dtype=np.int32)
+
+
+def make_sensor_residual_fn(model: FitModel) -> Callable:
+    """``fn(v, args) -> residuals`` as :func:`make_residual_fn`'s, of the sensor's
+    parameters alone with the optics held: ``v`` replaces ``args["u_ref"]`` at
+    ``args["index"]`` (:func:`sensor_index`), and ``args["image"]`` = {config: linear
+    images (K_c, 3, h, w)}, as ``predict(..., full=True)`` gives them at ``u_ref``, go
+    through the sensor alone (:func:`difstar._chain.read_out`). A step costs the
+    sensor's arithmetic for a few columns, not the PSF; the residuals equal the whole
+    chain's wherever the optics are at ``u_ref``."""
+
+    def raw(v, args):
+        x = from_unconstrained(model, args["u_ref"].at[args["index"]].set(v))
+        sen = sensor_of(model, x)
+        out = {}
+        for cfg in model.configs:
+            ts = exposure_times(model, x, cfg.name)
+            cfa = jax.vmap(lambda im, t: read_out(im, t, sen)[1])(args["image"][cfg.name], ts)
+            obs, w = args["data"][cfg.name]
+            out[cfg.name] = (cfa - obs) * w
+        return out
+
+    return jax.jit(raw)
+
+
 def make_args(model: FitModel, data: dict, u_ref=None, *, hold: tuple[str, ...] = ()) -> dict:
     """Solver ``args`` from ``data`` = {config: (ζ_obs, weight)}, holding the parameter
     blocks named in ``hold`` (base names or full names) at ``u_ref``."""
@@ -441,6 +493,8 @@ class Fitter:
         self._predict = eqx.filter_jit(lambda u: predict(model, from_unconstrained(model, u)))
         self._predict_full = eqx.filter_jit(
             lambda u: predict(model, from_unconstrained(model, u), full=True))
+        self._sensor_fn = make_sensor_residual_fn(model)
+        self._sensor_lm = LMStepper(self._sensor_fn, method=method, rtol=rtol, atol=atol)
 
     def residuals(self, u, args) -> np.ndarray:
         return np.asarray(self._flat(u, args))
@@ -458,8 +512,38 @@ class Fitter:
         """See :meth:`difstar._lm.LMStepper.solve` (the stopping rule)."""
         return self._lm.solve(u0, args, max_steps=max_steps, ftol=ftol, progress=progress)
 
+    def sensor_args(self, u, data: dict, channel: int) -> dict:
+        """``args`` for :meth:`solve_sensor` and :meth:`sensor_loss`: channel
+        ``channel``'s sensor parameters free, all else held at ``u``, where the linear
+        images are predicted once."""
+        image = {k: p.image for k, p in self.predict(u, full=True).items()}
+        return {"data": data, "image": image, "u_ref": jnp.asarray(u),
+                "index": jnp.asarray(sensor_index(self.model, channel))}
+
+    def sensor_loss(self, u, args) -> float:
+        """The loss at ``u`` with the optics held (``args`` from :meth:`sensor_args`)."""
+        r = jax.tree_util.tree_leaves(self._sensor_fn(jnp.asarray(u)[args["index"]], args))
+        return float(sum(0.5 * jnp.sum(v * v) for v in r))
+
+    def solve_sensor(self, u0, args, *, max_steps: int = 100, ftol: float = 1e-6
+                     ) -> SolveResult:
+        """Solve for one channel's sensor parameters alone from ``u0``, the optics held
+        (``args`` from :meth:`sensor_args`); each step costs the sensor, not the PSF.
+        The result's ``u`` is the whole vector."""
+        index = args["index"]
+        res = self._sensor_lm.solve(jnp.asarray(u0)[index], args, max_steps=max_steps,
+                                    ftol=ftol)
+        return dataclasses.replace(res, u=args["u_ref"].at[index].set(res.u), state=None)
+
     def covariance(self, u, args, solved: SolveResult | None = None):
-        """See :func:`covariance`. ``solved``: the solve (of this Fitter, on ``args``)
+        """Gauss–Newton covariance of the free parameters at ``u``.
+
+        Cov_u = (JᵀJ)⁺ (pseudo-inverse: the vertex deviations' mean-free gauge leaves
+        null directions) with J the Jacobian of the σ-weighted residuals, mapped to
+        physical units through the diagonal Jacobian of the bounds transform. Returns the
+        covariance (physical units, flattened free parameters), standard errors per
+        parameter and diagnostics (χ², degrees of freedom, reduced χ², condition number
+        of JᵀJ). ``solved``: the solve (of this Fitter, on ``args``)
         that ended at ``u``: its last linearisation gives the Jacobian, so nothing more
         is compiled or evaluated (without it, the Jacobian is computed anew)."""
         if solved is not None and solved.state is not None and np.array_equal(
@@ -470,31 +554,7 @@ class Fitter:
         return _covariance(self.model, j, r, u)
 
 
-def solve(model: FitModel, u0, args, *, max_steps: int = 100, rtol: float = 1e-6,
-          atol: float = 1e-6, method: str = "lm", progress=None) -> SolveResult:
-    """One-off :meth:`Fitter.solve` (compiles each call; reuse a Fitter to avoid that)."""
-    return Fitter(model, method=method, rtol=rtol, atol=atol).solve(
-        u0, args, max_steps=max_steps, progress=progress)
-
-
-def loss_of(model: FitModel, u, args) -> float:
-    r = eqx.filter_jit(make_residual_fn(model))(u, args)
-    return float(0.5 * sum(jnp.sum(v * v) for v in jax.tree_util.tree_leaves(r)))
-
-
 # --------------------------------------------------------------------- uncertainty
-
-def covariance(model: FitModel, u, args):
-    """Gauss–Newton covariance of the free parameters at ``u``.
-
-    Cov_u = (JᵀJ)⁺ (pseudo-inverse: the vertex deviations' mean-free gauge leaves null
-    directions) with J the Jacobian of the σ-weighted residuals, mapped to physical
-    units through the diagonal Jacobian of the bounds transform. Returns the covariance
-    (physical units, flattened free parameters), standard errors per parameter and
-    diagnostics (χ², degrees of freedom, reduced χ², condition number of JᵀJ).
-    """
-    return Fitter(model).covariance(u, args)
-
 
 def _covariance(model: FitModel, j: np.ndarray, r: np.ndarray, u):
     jtj = j.T @ j
@@ -524,31 +584,9 @@ def _covariance(model: FitModel, j: np.ndarray, r: np.ndarray, u):
     return cov, out, diag
 
 
-# ----------------------------------------------------------------------- comparisons
-
-def wrap_rotation(delta, n_blades: int):
-    """An angle difference wrapped into [−π/n, π/n): a regular n-gon rotated by 2π/n is
-    the same aperture."""
-    period = 2 * math.pi / n_blades
-    return (np.asarray(delta) + period / 2) % period - period / 2
-
-
-def response_error(x_fit: dict, x_true: dict, h_range: tuple[float, float], *, n: int = 512):
-    """Max |ζ_fit(H) − ζ_true(H)| per channel over physical exposures H = C·t in
-    ``h_range`` (log-spaced), as a fraction of the true curve's range there."""
-    h = np.geomspace(max(h_range[0], 1e-12), h_range[1], n)
-    out = []
-    for c in range(3):
-        zt = np.asarray(response_curve(h / x_true["phi0"][c], x_true["toe"][c], x_true["knee"][c]))
-        zf = np.asarray(response_curve(h / x_fit["phi0"][c], x_fit["toe"][c], x_fit["knee"][c]))
-        rng = zt.max() - zt.min()
-        out.append(float(np.max(np.abs(zf - zt)) / max(rng, 1e-12)))
-    return np.asarray(out)
-
-
 __all__ = [
     "CameraConstants", "ConfigSpec", "CaptureSpec", "FitModel", "SolveResult",
     "to_unconstrained", "from_unconstrained", "camera_scene", "predict", "noise_sigma",
-    "make_residual_fn", "make_args", "weights", "Fitter", "solve", "loss_of", "covariance",
-    "wrap_rotation", "response_error", "pupil_of",
+    "make_residual_fn", "make_args", "weights", "Fitter",
+    "pupil_of", "make_sensor_residual_fn", "sensor_index", "sensor_of", "exposure_times",
 ]

@@ -333,18 +333,31 @@ RESTARTED = ("knee",)
 def restart_response_curves(fitter, model, solved, args, solver: dict, *,
                             verbose: bool = True):
     """From the converged solve ``solved`` (a :class:`difstar._lm.SolveResult` on
-    ``args``), re-solve with each channel's knee moved by each of :data:`RESTART_FACTORS`
-    (inside its bounds), everything else as reached; keep any start that ends at a lower
-    loss. Returns (the best solve, tries). (The toe, pinned by the unsaturated dark
-    pixels of every capture, has not needed it.)"""
+    ``args``), try each channel's knee moved by each of :data:`RESTART_FACTORS` (inside
+    its bounds), everything else as reached; keep any start that ends at a lower loss.
+    Returns (the best solve, tries). (The toe, pinned by the unsaturated dark pixels of
+    every capture, has not needed it.)
+
+    A restart first re-solves that channel's sensor parameters alone (φ0, toe, knee),
+    the optics held where ``solved`` put them (:meth:`difstar._fit.Fitter.solve_sensor`:
+    a step costs the sensor's arithmetic on the linear images predicted once, not the
+    PSF). The basin
+    a restart looks for is the response curve's; only a restart that ends lower there is
+    then solved with everything free, from where it ended, and kept if that ends lower
+    than ``solved``."""
     from difstar._fit import from_unconstrained, to_unconstrained
 
     tries = []
-    for name in RESTARTED:
-        spec = model.params.get(name)
-        if spec is None or not spec.free:
-            continue
+    specs = [(name, model.params[name]) for name in RESTARTED
+             if name in model.params and model.params[name].free]
+    if not specs:
+        return solved, tries
+    max_steps = int(solver.get("max_steps", 100))
+    ftol = float(solver.get("ftol", 1e-6))
+    for name, spec in specs:
         for ch in range(spec.size):
+            sensor_args = fitter.sensor_args(solved.u, args["data"], ch)
+            floor = fitter.sensor_loss(solved.u, sensor_args)  # = the loss at solved.u
             for f in RESTART_FACTORS:
                 vals = {k: np.asarray(v) for k, v in
                         from_unconstrained(model, solved.u).items()}
@@ -352,19 +365,27 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
                 span = spec.hi[ch] - spec.lo[ch]
                 x[ch] = np.clip(x[ch] * f, spec.lo[ch] + 1e-3 * span, spec.hi[ch] - 1e-3 * span)
                 vals[name] = x
-                res = fitter.solve(to_unconstrained(model, vals), args,
-                                   max_steps=int(solver.get("max_steps", 100)),
-                                   ftol=float(solver.get("ftol", 1e-6)))
+                res = fitter.solve_sensor(to_unconstrained(model, vals), sensor_args,
+                                          max_steps=max_steps, ftol=ftol)
+                steps = res.steps
+                # a lower basin (by more than χ² 1, a 1-σ change of one parameter, and
+                # than rounding): solve it whole
+                lower = floor - res.loss > max(0.5, 1e-6 * floor)
+                if lower:
+                    res = fitter.solve(res.u, args, max_steps=max_steps, ftol=ftol)
+                    steps += res.steps
                 # solved.loss: the loss at solved.u (no model evaluation to compile)
-                better = res.loss < solved.loss * (1 - 1e-9)
+                better = lower and res.loss < solved.loss * (1 - 1e-9)
                 tries.append({"parameter": f"{name}[{ch}]", "factor": f, "loss": res.loss,
-                              "kept": bool(better), "steps": res.steps})
+                              "kept": bool(better), "steps": steps})
                 if verbose:
                     _log(f"difstar fit: restart {name}[{'RGB'[ch] if spec.size == 3 else ch}] "
                          f"× {f:g}: loss {res.loss:.7g} "
                          f"({'lower: kept' if better else 'not lower'})")
                 if better:
                     solved = res
+                    sensor_args = fitter.sensor_args(solved.u, args["data"], ch)
+                    floor = fitter.sensor_loss(solved.u, sensor_args)
     return solved, tries
 
 

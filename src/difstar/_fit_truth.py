@@ -4,9 +4,12 @@ given in the manifest's ``truth`` block)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from ._fit import response_error, wrap_rotation, zernike_index
+from ._fit import zernike_index
+from ._sensor import response_curve
 from .fitting._params import PERTURB
 
 
@@ -75,3 +78,23 @@ def compare_truth(model, x_fit: dict, truth: dict, h_range, stderr: dict | None 
     crit = [v["pass"] for v in out.values() if "pass" in v]
     out["all_pass"] = bool(all(crit))
     return out
+
+
+def wrap_rotation(delta, n_blades: int):
+    """An angle difference wrapped into [−π/n, π/n): a regular n-gon rotated by 2π/n is
+    the same aperture."""
+    period = 2 * math.pi / n_blades
+    return (np.asarray(delta) + period / 2) % period - period / 2
+
+
+def response_error(x_fit: dict, x_true: dict, h_range: tuple[float, float], *, n: int = 512):
+    """Max |ζ_fit(H) − ζ_true(H)| per channel over physical exposures H = C·t in
+    ``h_range`` (log-spaced), as a fraction of the true curve's range there."""
+    h = np.geomspace(max(h_range[0], 1e-12), h_range[1], n)
+    out = []
+    for c in range(3):
+        zt = np.asarray(response_curve(h / x_true["phi0"][c], x_true["toe"][c], x_true["knee"][c]))
+        zf = np.asarray(response_curve(h / x_fit["phi0"][c], x_fit["toe"][c], x_fit["knee"][c]))
+        rng = zt.max() - zt.min()
+        out.append(float(np.max(np.abs(zf - zt)) / max(rng, 1e-12)))
+    return np.asarray(out)
