@@ -263,7 +263,7 @@ def test_sensor_only_residuals_are_the_whole_chains_with_the_optics_held():
     u0 = F.to_unconstrained(model)
     args = F.make_args(model, data, u0)
     for ch in range(3):
-        sargs = fitter.sensor_args(u0, data, ch)
+        sargs = fitter.sensor_args(u0, data, ch, fitter.linear_images(u0))
         index = np.asarray(sargs["index"])
         assert len(index) == 3  # phi0, toe and knee of channel ch
         v = np.asarray(u0)[index] + np.array([0.2, -0.3, 0.5])

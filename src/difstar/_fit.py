@@ -512,12 +512,15 @@ class Fitter:
         """See :meth:`difstar._lm.LMStepper.solve` (the stopping rule)."""
         return self._lm.solve(u0, args, max_steps=max_steps, ftol=ftol, progress=progress)
 
-    def sensor_args(self, u, data: dict, channel: int) -> dict:
+    def linear_images(self, u) -> dict:
+        """{config: the linear images (K_c, 3, h, w) at ``u``}, for :meth:`sensor_args`."""
+        return {k: p.image for k, p in self.predict(u, full=True).items()}
+
+    def sensor_args(self, u, data: dict, channel: int, images: dict) -> dict:
         """``args`` for :meth:`solve_sensor` and :meth:`sensor_loss`: channel
-        ``channel``'s sensor parameters free, all else held at ``u``, where the linear
-        images are predicted once."""
-        image = {k: p.image for k, p in self.predict(u, full=True).items()}
-        return {"data": data, "image": image, "u_ref": jnp.asarray(u),
+        ``channel``'s sensor parameters free, all else held at ``u``, where ``images``
+        (:meth:`linear_images`) were predicted."""
+        return {"data": data, "image": images, "u_ref": jnp.asarray(u),
                 "index": jnp.asarray(sensor_index(self.model, channel))}
 
     def sensor_loss(self, u, args) -> float:

@@ -226,7 +226,7 @@ def seconds_since_process_start() -> float | None:
         return None
 
 
-def photometric_start(model, caps, u0):
+def photometric_start(fitter, caps, u0):
     """``u0`` with a free φ0 set, per channel, so that the model's linear image at ``u0``
     carries the light of the unsaturated pixels in the linear range (ζ < 0.7) of the
     data: φ0 = Σ C·t / Σ ζ over those pixels. The exposure scale's start then no longer
@@ -234,16 +234,15 @@ def photometric_start(model, caps, u0):
     blanks the whole prediction, where the solver cannot move it); left alone when φ0
     is fixed."""
     from difstar._cfa import bayer_masks_np
-    from difstar._fit import from_unconstrained, predict, to_unconstrained
+    from difstar._fit import from_unconstrained, to_unconstrained
 
+    model = fitter.model
     spec = model.params.get("phi0")
     if spec is None or not spec.free:
         return u0
-    import jax
-
     x = from_unconstrained(model, u0)
-    # one compiled program (kept by the compilation cache), not the chain op by op
-    pred = jax.jit(lambda x: {k: p.image for k, p in predict(model, x, full=True).items()})(x)
+    # the Fitter's compiled prediction (the restarts and the outputs use it again)
+    pred = fitter.linear_images(u0)
     num = np.zeros(3)
     den = np.zeros(3)
     for cfg in model.configs:
@@ -354,9 +353,10 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
         return solved, tries
     max_steps = int(solver.get("max_steps", 100))
     ftol = float(solver.get("ftol", 1e-6))
+    images = fitter.linear_images(solved.u)  # the optics' work, once
     for name, spec in specs:
         for ch in range(spec.size):
-            sensor_args = fitter.sensor_args(solved.u, args["data"], ch)
+            sensor_args = fitter.sensor_args(solved.u, args["data"], ch, images)
             floor = fitter.sensor_loss(solved.u, sensor_args)  # = the loss at solved.u
             for f in RESTART_FACTORS:
                 vals = {k: np.asarray(v) for k, v in
@@ -384,7 +384,8 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
                          f"({'lower: kept' if better else 'not lower'})")
                 if better:
                     solved = res
-                    sensor_args = fitter.sensor_args(solved.u, args["data"], ch)
+                    images = fitter.linear_images(solved.u)
+                    sensor_args = fitter.sensor_args(solved.u, args["data"], ch, images)
                     floor = fitter.sensor_loss(solved.u, sensor_args)
     return solved, tries
 
@@ -425,7 +426,7 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
                         atol=man.solver["atol"], devices=devices)
     if u0 is None:
         u0 = to_unconstrained(model)
-    u0 = photometric_start(model, caps, u0)
+    u0 = photometric_start(fitter, caps, u0)
     if verbose:
         _log(f"difstar fit: {len(model.captures)} captures, {model.n_free} free parameters, "
              "grids " + "; ".join(f"{c.name}: {c.grid.describe()}" for c in model.configs))

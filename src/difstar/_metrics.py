@@ -142,6 +142,20 @@ def table1(
     return out
 
 
+@functools.partial(jax.jit, static_argnames=("pattern", "white_balance", "matrix"))
+def compare_raw(pred_cfa: Float[ArrayLike, "h w"], obs_cfa: Float[ArrayLike, "h w"], *,
+                pattern: str, white_balance: tuple, matrix: tuple):
+    """(sRGB of the predicted mosaic, sRGB of the observed one clipped to [0, 1], their
+    :func:`table1`): one compiled program per shape (a fit's captures share it)."""
+    from ._colour import render_srgb
+
+    m = np.asarray(matrix, float)
+    s_pred = render_srgb(pred_cfa, pattern, white_balance=white_balance, matrix=m)
+    s_obs = render_srgb(jnp.clip(obs_cfa, 0, 1), pattern, white_balance=white_balance,
+                        matrix=m)
+    return s_pred, s_obs, table1(s_pred, s_obs)
+
+
 def _sample(img: Array, rows: Array, cols: Array) -> Array:
     """Bilinear samples of img (h, w) or (..., h, w) at (rows, cols), edge-clamped."""
     f = lambda im: jax.scipy.ndimage.map_coordinates(  # noqa: E731
@@ -153,9 +167,10 @@ def _sample(img: Array, rows: Array, cols: Array) -> Array:
     return jax.vmap(f)(img.reshape(-1, *img.shape[-2:])).reshape(*lead, rows.shape[0])
 
 
+@functools.partial(jax.jit, static_argnames=("n",))  # one program per shape
 def profile_circle(
     img: Float[ArrayLike, "*c h w"],
-    centre_rc: Float[ArrayLike, "2"] | tuple[float | int, float | int],
+    centre_rc: Float[ArrayLike, "2"] | tuple[float | Float[Array, ""], float | Float[Array, ""]],
     radius_px: float | int | Float[ArrayLike, ""],
     n: int,
 ) -> Float[Array, "*c n"]:
@@ -175,6 +190,7 @@ def profile_circle(
     return _sample(img, rows, cols)
 
 
+@functools.partial(jax.jit, static_argnames=("n",))  # one program per shape
 def profile_line(
     img: Float[ArrayLike, "*c h w"],
     row: float | int | Float[ArrayLike, ""],
