@@ -31,6 +31,26 @@ from difstar._fit_run import _log, fit_manifest, synth_replaceable, synthesize
 
 # ------------------------------------------------------------------------- outputs
 
+def _capture_figure(plt, shown):
+    """A capture's figure: observed and predicted ζ (log10) and the residual in σ,
+    saturated pixels blank; (figure, its three images) for ``set_data``."""
+    fig, ax = plt.subplots(1, 3, figsize=(12, 4))
+    titles = ("observed ζ (log10)", "predicted ζ (log10)",
+              "residual (pred − obs)/σ, saturated blank")
+    limits = ((-4, 0, "magma"), (-4, 0, "magma"), (-5, 5, "RdBu_r"))
+    images = []
+    for a, im, title, (lo, hi, cmap) in zip(ax, shown, titles, limits):
+        images.append(a.imshow(im, vmin=lo, vmax=hi, cmap=cmap))
+        a.set_title(title)
+        fig.colorbar(images[-1], ax=a, fraction=0.046)
+        a.set_xticks([])
+        a.set_yticks([])
+    # fixed margins (no ticks to make room for): tight_layout measured every colorbar's
+    # labels, a second per fit
+    fig.subplots_adjust(left=0.01, right=0.96, bottom=0.03, top=0.86, wspace=0.25)
+    return fig, images
+
+
 def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> list[str]:
     import jax.numpy as jnp
     import matplotlib
@@ -45,6 +65,7 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
     from difstar.io._output import write_json
 
     written = ["fit_result.json"]
+    panels = None
     pred = fitter.predict(u, full=True)
     cc = model.camera
     rows = []
@@ -57,25 +78,15 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
             sig = np.asarray(noise_sigma(pc, gain_e_per_dn=noise["gain_e_per_dn"],
                                          read_noise_dn=noise["read_noise_dn"],
                                          full_scale_dn=caps[c.name]["full_scale_dn"]))
-            fig, ax = plt.subplots(1, 3, figsize=(12, 4))
-            lo = 1e-4
-            for a, im, title in ((ax[0], obs, "observed ζ"), (ax[1], pc, "predicted ζ")):
-                h = a.imshow(np.log10(np.clip(im, lo, 1)), vmin=-4, vmax=0, cmap="magma")
-                a.set_title(f"{title} (log10)")
-                fig.colorbar(h, ax=a, fraction=0.046)
-            res = np.where(sat, np.nan, (pc - obs) / sig)
-            h = ax[2].imshow(res, vmin=-5, vmax=5, cmap="RdBu_r")
-            ax[2].set_title("residual (pred − obs)/σ, saturated blank")
-            fig.colorbar(h, ax=ax[2], fraction=0.046)
-            for a in ax:
-                a.set_xticks([])
-                a.set_yticks([])
+            shown = (np.log10(np.clip(obs, 1e-4, 1)), np.log10(np.clip(pc, 1e-4, 1)),
+                     np.where(sat, np.nan, (pc - obs) / sig))
+            if panels is None:  # one figure for every capture: only its pixels change
+                panels = _capture_figure(plt, shown)
+            fig, images = panels
+            for im, a in zip(images, shown):
+                im.set_data(a)
             fig.suptitle(f"{c.name}: t = {c.exposure_time:g} s")
-            # fixed margins (no ticks to make room for): tight_layout measured every
-            # colorbar's labels, a second per fit
-            fig.subplots_adjust(left=0.01, right=0.96, bottom=0.03, top=0.86, wspace=0.25)
             fig.savefig(tmp / f"capture_{c.name}.png", dpi=80)
-            plt.close(fig)
             written.append(f"capture_{c.name}.png")
             s_pred, s_obs, t1 = compare_raw(
                 pc, obs, pattern=cc.pattern, white_balance=tuple(cc.white_balance),
@@ -133,6 +144,8 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
         fig.savefig(tmp / f"profiles_{cfg.name}.png", dpi=80)
         plt.close(fig)
         written.append(f"profiles_{cfg.name}.png")
+    if panels is not None:
+        plt.close(panels[0])
     result["table1"] = rows
     lines = ["| capture | t (s) | " + " | ".join(f"{ch} MSE | {ch} SSIM" for ch in
                                                  ("R", "G", "B", "B/W")) + " |",
