@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from difstar._lm import MAX_REJECTED, LMStepper, StopRule
+from difstar._lm import MAX_REJECTED, LMStepper, StopRule, normal_covariance
 
 
 def test_rejections_at_the_start_do_not_stop_a_solve():
@@ -39,3 +39,19 @@ def test_solve_reaches_the_rosenbrock_minimum():
     assert res.result == "converged"
     np.testing.assert_allclose(np.asarray(res.u), [1.0, 1.0], atol=1e-6)
     assert res.loss < 1e-12 and res.loss_start > 1.0
+
+
+def test_normal_covariance_is_the_inverse_normal_matrix():
+    """For a Jacobian of full rank whose columns differ by 10 decades (parameters in
+    metres beside parameters in nanometres), the covariance is (JᵀJ)⁻¹ (NumPy's inverse,
+    in float64); a column of zeros (a parameter nothing depends on) gets a zero row and
+    column and a zero norm, and leaves the others' covariance as without it."""
+    rng = np.random.default_rng(3)
+    j = rng.normal(size=(200, 4)) * np.array([1e-5, 1.0, 3e4, 1e5])
+    cov, norms = normal_covariance(j)
+    np.testing.assert_allclose(cov, np.linalg.inv(j.T @ j), rtol=1e-9)
+    np.testing.assert_allclose(norms, np.linalg.norm(j, axis=0), rtol=1e-12)
+    j0 = np.insert(j, 2, 0.0, axis=1)
+    cov0, norms0 = normal_covariance(j0)
+    assert norms0[2] == 0 and not cov0[2].any() and not cov0[:, 2].any()
+    np.testing.assert_allclose(np.delete(np.delete(cov0, 2, 0), 2, 1), cov, rtol=1e-9)

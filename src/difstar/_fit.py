@@ -52,7 +52,7 @@ import numpy as np
 
 from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, read_out, simulate
 from ._image import DiscSource
-from ._lm import LMStepper, SolveResult, with_batched_jacobian
+from ._lm import LMStepper, SolveResult, normal_covariance, with_batched_jacobian
 from ._param import Param
 from ._pupil import Polygon, RegularPolygon
 from ._pupil_curved import CurvedIris
@@ -561,7 +561,7 @@ class Fitter:
 
 def _covariance(model: FitModel, j: np.ndarray, r: np.ndarray, u):
     jtj = j.T @ j
-    cov_u = np.linalg.pinv(jtj, rcond=1e-12, hermitian=True)
+    cov_u = normal_covariance(j)[0]
 
     def xflat(u_):
         x = from_unconstrained(model, u_)

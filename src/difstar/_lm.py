@@ -93,6 +93,22 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None)
     return fn
 
 
+def normal_covariance(jac):
+    """(JᵀJ)⁺ of a Jacobian ``jac`` (residuals × parameters, residuals weighted by 1/σ),
+    by a pseudo-inverse of the column-scaled normal matrix (parameters of any units
+    compare), and the columns' norms (0: a parameter the residuals do not depend on; its
+    row and column of the covariance are 0). The one Gauss–Newton covariance of every
+    difstar fit (RAW captures in the solver's unbounded coordinates, star images in
+    physical ones)."""
+    jac = np.asarray(jac)
+    jtj = jac.T @ jac
+    colnorm = np.sqrt(np.diag(jtj))
+    dscale = np.where(colnorm > 0, 1.0 / np.where(colnorm > 0, colnorm, 1.0), 0.0)
+    cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * jtj * dscale[None, :],
+                                           rcond=1e-12) * dscale[None, :]
+    return cov, colnorm
+
+
 class StopRule:
     """The loss-based half of the stopping rule, for one solve: call :meth:`update`
     after every step with the loss of the last accepted point and the solver's count of

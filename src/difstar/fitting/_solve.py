@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._lm import normal_covariance
 from .._param import step_map
 from .._progress import moved_most, step_bar
 from ._data import FitData, _angle_from, _polar
@@ -333,16 +334,6 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
     jac, (r, m) = jax.jit(jax.jacfwd(with_values, has_aux=True))(x0, args)
     return np.asarray(jac), np.asarray(r), [np.asarray(mi) for mi in m]
 
-def _covariance(jac):
-    """(JᵀJ)⁻¹ by a pseudo-inverse of the column-scaled normal matrix, and the columns'
-    norms (0: a parameter the model does not depend on)."""
-    jtj = jac.T @ jac
-    colnorm = np.sqrt(np.diag(jtj))
-    dscale = np.where(colnorm > 0, 1.0 / np.where(colnorm > 0, colnorm, 1.0), 0.0)
-    cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * jtj * dscale[None, :],
-                                           rcond=1e-12) * dscale[None, :]
-    return cov, colnorm
-
 def _errors(model: ImageModel, data, values: Mapping[str, float], target=None):
     """Gauss–Newton covariance in the physical parameters at ``values``, scaled by
     χ²/dof when that exceeds 1 (always, for spike profiles: their σ are relative)."""
@@ -353,7 +344,7 @@ def _errors(model: ImageModel, data, values: Mapping[str, float], target=None):
     chi2 = float(r @ r)
     dof = sum(t.n for t in _as_list(target)) - len(free)
     kinds = {t.kind for t in _as_list(target)}
-    cov, colnorm = _covariance(jac)
+    cov, colnorm = normal_covariance(jac)
     msgs = []
     for k, c in zip(free, colnorm):
         if not c > 1e-12 * max(colnorm.max(), 1e-300):
@@ -403,7 +394,7 @@ def noise_limited_errors(model: ImageModel, data: FitData, values: Mapping[str, 
         if not np.all(np.isfinite(used) & (used > 0)):
             raise FitInputError(f"noise_limited_errors: sigmas[{i}] must be finite and > 0 "
                                 "on every used pixel.")
-        cov, colnorm = _covariance(jac / np.where(data.mask, sig, 1.0).reshape(-1, 1))
+        cov, colnorm = normal_covariance(jac / np.where(data.mask, sig, 1.0).reshape(-1, 1))
         err = np.sqrt(np.maximum(np.diag(cov), 0.0))
         out.append({k: float(e) if c > 0 else float("inf")
                     for k, e, c in zip(free, err, colnorm)})
