@@ -340,10 +340,9 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
     A restart first re-solves that channel's sensor parameters alone (φ0, toe, knee),
     the optics held where ``solved`` put them (:meth:`difstar._fit.Fitter.solve_sensor`:
     a step costs the sensor's arithmetic on the linear images predicted once, not the
-    PSF). The basin
-    a restart looks for is the response curve's; only a restart that ends lower there is
-    then solved with everything free, from where it ended, and kept if that ends lower
-    than ``solved``."""
+    PSF). The basin a restart looks for is the response curve's; only a restart that
+    ends lower there is then solved with everything free, from where it ended, and kept
+    if that ends lower than ``solved``."""
     from difstar._fit import from_unconstrained, to_unconstrained
 
     tries = []
