@@ -39,7 +39,8 @@ modules, in the order they build on one another: ``_params`` (:class:`Param`), `
 (pupil builders, :class:`Light`), ``_data`` (:class:`FitData`, :class:`Noise`), ``_model``
 (:class:`ImageModel`), ``_solve`` (one solve, its errors, :class:`FitResult`),
 ``_analysis`` (χ² slices, rough starts, spike angles), ``_stages`` (the checks of a fit's
-stages), ``_procedure`` (:func:`fit`), ``_manifest`` (:func:`load_manifest`), ``_studies``
+stages), ``_auto`` (:func:`auto_stages`: the stages a fit chooses when it is given
+none), ``_procedure`` (:func:`fit`), ``_manifest`` (:func:`load_manifest`), ``_studies``
 (changed copies of a fitted star: fainter, moved on the pixel grid, with a neighbour;
 the noise limit), ``_run`` (:func:`run_fit_image`).
 """
@@ -47,6 +48,7 @@ the noise limit), ``_run`` (:func:`run_fit_image`).
 from ._analysis import chi2_at as chi2_at
 from ._analysis import chi2_slice as chi2_slice
 from ._analysis import spike_angles as spike_angles
+from ._auto import auto_stages as auto_stages
 from ._data import FitData as FitData
 from ._data import Noise as Noise
 from ._data import data_intensity as data_intensity
@@ -79,7 +81,7 @@ from ._studies import shifted_image as shifted_image
 
 __all__ = [
     "FitData", "FitInputError", "FitResult", "ImageModel", "Light", "Noise", "Param",
-    "PupilBuilder", "chi2_at", "chi2_slice", "contaminated_image", "data_intensity",
+    "PupilBuilder", "auto_stages", "chi2_at", "chi2_slice", "contaminated_image", "data_intensity",
     "fainter_copy", "fit", "fit_changed_copy", "fit_contaminated_copy", "fit_fainter_copy",
     "fit_joint", "fit_shifted_copy", "iris_pupil", "jwst_pupil", "load_manifest", "model_images",
     "noise_from_residuals", "noise_limit", "noise_limited_errors",

@@ -33,7 +33,8 @@ class FitData:
     share one flux (leave ``flux`` out of ``per_capture``). ``saturation``: pixels at or
     above this level are not used (the sensor clipped them). ``light``: this capture's
     :class:`Light` where it differs from the model's (the R, G and B photosites of one
-    RAW fitted together, each in its own band)."""
+    RAW fitted together, each in its own band). ``noise``: the :class:`Noise` σ was
+    made from (None where σ was given)."""
 
     image: np.ndarray
     sigma: np.ndarray
@@ -42,6 +43,7 @@ class FitData:
     path: str | None = None
     exposure: float = 1.0
     light: Any = None
+    noise: Noise | None = None
 
     @staticmethod
     def from_array(image, *, sigma=None, noise: Noise | None = None, mask=None, roi=None,
@@ -71,6 +73,7 @@ class FitData:
         if np.count_nonzero(~np.isfinite(img) & m):
             raise FitInputError("FitData: NaN or infinite values in unmasked pixels.")
         img = np.where(m, img, 0.0)
+        given = sigma is not None
         if sigma is None:
             noise = noise or Noise()
             read = noise.read
@@ -95,7 +98,8 @@ class FitData:
         if light is not None and not isinstance(light, Light):
             raise FitInputError("FitData: light must be a difstar Light (Light.monochromatic or "
                                 f"Light.band); got {type(light).__name__}.")
-        return FitData(img, sigma, m, pixel_scale, path, exposure, light)
+        return FitData(img, sigma, m, pixel_scale, path, exposure, light,
+                       None if given else noise)
 
     @staticmethod
     def from_file(path, **kw) -> FitData:

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from ._auto import auto_stages
 from ._data import FitData, Noise
 from ._model import COMMON, RESPONSE, SOURCE_DISC, ImageModel
 from ._params import FitInputError, Param, _as_param
@@ -467,7 +468,10 @@ def load_manifest(path, *, transform=None):
         field = f"params/{m.group(1)}" if m and m.group(1) in params else "(top level)"
         raise FitInputError(f"{src}: field {field}: {msg}") from None
     _check_geometry(kind, model, src)
-    opts = {"stages": man.get("stages"), "starts": man.get("starts"),
+    stages = man.get("stages", "auto")
+    if stages == "auto":  # chosen here, so that they are checked like written ones
+        stages = auto_stages(model, fds)
+    opts = {"stages": stages, "starts": man.get("starts"),
             "max_steps": int(man.get("max_steps", 100)), "manifest": man,
             "builder": kind, "per_capture": man.get("per_capture"), "inputs": inputs}
     # the stages, starts and per-capture names, as fit() will check them: refused here,

@@ -9,6 +9,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ._analysis import _scan, chi2_at, spike_target
+from ._auto import auto_stages, stages_text
 from ._data import noise_from_residuals, reject_outliers
 from ._model import ImageModel
 from ._params import FitInputError
@@ -24,7 +25,7 @@ from ._solve import (
 from ._stages import _check_fit_inputs, _put
 
 
-def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
+def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = None,
         starts: Mapping[str, Sequence[float]] | None = None, max_steps: int = 100,
         rtol: float = 1e-6, atol: float = 1e-8, verbose: bool = False,
         per_capture: Sequence[str] | None = None) -> FitResult:
@@ -85,7 +86,8 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
     A stage with a key or an option not listed here is refused before any fitting.
     Each stage starts from the last one's values. Standard errors are computed at the
     end for every free parameter on the pixels; those of parameters last fitted in a
-    spikes stage come from that stage. Default: one stage, all free, whole image.
+    spikes stage come from that stage. Default: one stage, all free, whole image;
+    ``"auto"``: the stages :func:`auto_stages` chooses from the model and the data.
     ``starts``: name → start values tried in the first stage (multi-start; the lowest χ²
     goes on). Raises :class:`FitInputError` for inputs that cannot be right. For several
     captures the result's images (``model_image``, ``residual``, ``data``, ``mask``)
@@ -99,6 +101,14 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | None = None,
     for i, d in enumerate(datas):
         if d.image.shape[0] < 4 or d.image.shape[1] < 4:
             raise FitInputError(f"fit: capture {i}'s window is smaller than 4 × 4 pixels.")
+    if isinstance(stages, str):
+        if stages != "auto":
+            raise FitInputError(f"fit: stages must be a list of stages or 'auto'; got "
+                                f"{stages!r}.")
+        stages = auto_stages(model, datas)
+        if verbose:
+            print("stages chosen from the model and the data (stages='auto'):\n"
+                  + stages_text(stages), flush=True)
     if n_cap > 1 or per_capture:
         per = ("x0", "y0", "flux", "background") if per_capture is None else tuple(per_capture)
         model = model.for_captures(per, n_cap)

@@ -201,6 +201,11 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     from ._solve import values_of_capture
 
     model, data, opts = loaded
+    if verbose and opts["manifest"].get("stages", "auto") == "auto":
+        from ._auto import stages_text
+
+        print("stages chosen from the model and the data (the manifest gives none):\n"
+              + stages_text(opts["stages"]), flush=True)
     res = fit(model, data, stages=opts["stages"], starts=opts["starts"],
               max_steps=max_steps or opts["max_steps"], verbose=verbose,
               per_capture=opts["per_capture"])
