@@ -10,7 +10,9 @@ the child as it exits). The accuracy column is the campaign's own figure: the re
 RMS over the data's peak for a star image (against the measured file), the recovery
 criteria against the known truth for the synthetic RAW captures, plus the seconds from
 process start to the first solver step that ``difstar fit`` reports. The JWST star
-(``jwst``) takes 5–10 minutes on 2 cores; it runs only when named.
+(``jwst``) takes 3–8 minutes on 2 cores; it runs only when named. ``spitzer-auto`` and
+``jwst-auto`` fit the same data with no hand-written stages (each campaign's
+``variants/auto.json``: the stages ``difstar.fitting.auto_stages`` chooses).
 
 Each case runs twice, with a compilation cache of its own (``DIFSTAR_COMPILATION_CACHE``,
 a new empty folder): ``first`` compiles every program and stores it, as a user's first
@@ -37,6 +39,9 @@ CASES = {
     "raw": ("fit/synthetic-paper-camera/manifest.json", 30, None,
             "criteria 10/10 (recovery study); first step ≤ 10 s"),
     "jwst": ("fit/jwst-nircam/manifest.json", 60, 2.0, "residual ≤ 0.7 %"),
+    # the same data and models with no hand-written stages (difstar.fitting.auto_stages)
+    "spitzer-auto": ("fit/spitzer-irac/variants/auto.json", 30, 1.5, "residual ≤ 0.55 %"),
+    "jwst-auto": ("fit/jwst-nircam/variants/auto.json", 60, 2.0, "residual ≤ 0.7 %"),
 }
 
 #: run in the child: the CLI, then its own peak RSS (kB on Linux) on the last line
