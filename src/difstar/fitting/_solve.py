@@ -246,12 +246,41 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                       "answer.", RuntimeWarning, stacklevel=2)
     return vals, status, ok, steps, model, chi2
 
+#: the parameters that enter a capture's image linearly (image = flux · exposure · PSF +
+#: background, without a response curve): a solve takes them in closed form
+LINEAR = ("flux", "background")
+
+def projected_names(model: ImageModel, free: Sequence[str], target) -> list[str]:
+    """The free parameters a solve of ``free`` on ``target`` takes in closed form at every
+    step (variable projection): each capture's flux and background where they are free
+    without bounds, the image has no response curve, the residuals are pixels (not
+    spike profiles) and something else is free for the solver to move."""
+    if model.response or not all(isinstance(t, _PixelTarget) for t in _as_list(target)):
+        return []
+    lin = [k for k in free if k.split("@")[0] in LINEAR and model.params[k].bounds is None]
+    return lin if len(lin) < len(free) else []
+
+def _project(r_of, n: int):
+    """(residual, β) at the β that minimises |r_of(β)|², for ``r_of`` affine in β (n
+    numbers): one linearisation at β = 0 gives r(0) and the n columns A, then the normal
+    equations of the column-scaled A. Differentiable: the solver's Jacobian of the
+    projected residual is the exact one (no Kaufman approximation)."""
+    r0, column = jax.linearize(r_of, jnp.zeros(n))
+    a = jax.vmap(column, out_axes=1)(jnp.eye(n))
+    norm = jnp.sqrt(jnp.sum(a * a, axis=0))
+    scale = jnp.where(norm > 0, norm, 1.0)
+    an = a / scale
+    beta = -jnp.linalg.solve(an.T @ an, an.T @ r0) / scale
+    return r0 + a @ beta, beta
+
 def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                 atol: float, ftol: float, label: str | None):
-    """One Levenberg–Marquardt solve of ``model``'s free parameters on its PSF plan."""
+    """One Levenberg–Marquardt solve of ``model``'s free parameters on its PSF plan; the
+    flux and background of :func:`projected_names` in closed form at every step."""
     from .._lm import LMStepper, with_batched_jacobian
 
-    free = model.free
+    lin = projected_names(model, model.free, target)
+    free = [k for k in model.free if k not in lin]
     fixed = {k: jnp.asarray(p.value, float) for k, p in model.params.items() if not p.free}
     params = [model.params[k] for k in free]
     res = _residual_fn(model, data, target)
@@ -266,9 +295,15 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
             v[k] = step_map(u[i], *steps[k]) if k in steps else _from_u(p, u[i])
         return v
 
-    def residuals(u, args):
+    def residuals_and_linear(u, args):
         fixed, steps, arrays = args
-        return res(values_of(u, fixed, steps), arrays)[0]
+        v = values_of(u, fixed, steps)
+        if not lin:
+            return res(v, arrays)[0], jnp.zeros(0)
+        return _project(lambda b: res({**v, **dict(zip(lin, b))}, arrays)[0], len(lin))
+
+    def residuals(u, args):
+        return residuals_and_linear(u, args)[0]
 
     # the fixed values, the unbounded parameters' starts and the data are the solver's
     # arguments, not constants of its program: the same stage run again (a repeat's
@@ -298,6 +333,9 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     status = {"converged": "converged", "failed": "not converged: the solver failed",
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
     vals = {k: float(x) for k, x in values_of(sol.u, fixed, steps).items()}
+    if lin:  # the closed-form values at the answer
+        beta = jax.jit(lambda u, a: residuals_and_linear(u, a)[1])(sol.u, args)
+        vals |= {k: float(x) for k, x in zip(lin, beta)}
     return vals, status, ok, sol.steps, 2.0 * sol.loss
 
 
