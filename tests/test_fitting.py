@@ -1387,3 +1387,23 @@ def test_flux_in_closed_form_ends_where_the_solver_carrying_it_ends(synthetic):
     for k in a.free:
         assert abs(a.values[k] - b.values[k]) < 0.02 * a.errors[k], k
     assert a.chi2 == pytest.approx(b.chi2, rel=1e-6)
+
+
+def test_scan_says_when_the_data_cannot_tell_two_rotations(synthetic):
+    """Three struts at 120° make spikes every 60°, and a real pupil's image does not
+    change under a half turn: the star's rotation θ and θ + 60° give the same image. A
+    scan whose bounds hold both finds both and says so in the result's warnings; a scan
+    inside one period says nothing."""
+    data, _ = synthetic
+    held = {k: Param(TRUE[k]) for k in ("x0", "y0", "flux", "background")}
+    stage = {"free": ["rotation"], "max_steps": 5,
+             "scan": {"name": "rotation", "half_range": 110, "step": 1.0}}
+    wide = fit(_model(rotation=Param(0.0, True, (-40, 70)), **held), data, stages=[stage])
+    scan = [s for s in wide.stages if "scan" in s][0]
+    (twin, dchi2), *_ = scan["rivals"]  # which of the two is lowest: rounding's choice
+    low, high = sorted([scan["best"], twin])
+    assert abs(low - TRUE["rotation"]) <= 1.0 and high == low + 60 and dchi2 < 0.1
+    assert any("hardly tell" in w for w in wide.warnings)
+    narrow = fit(_model(rotation=Param(0.0, True, (-20, 20)), **held), data, stages=[stage])
+    assert [s for s in narrow.stages if "scan" in s][0]["rivals"] == []
+    assert not any("hardly tell" in w for w in narrow.warnings)

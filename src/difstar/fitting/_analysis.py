@@ -48,6 +48,16 @@ def _scan(model: ImageModel, data, target, values, *, name: str, half_range,
     The grid is the whole multiples of ``step`` in that range, not the value plus
     multiples: starts that differ by less than a step search the same points, so the
     basin chosen does not depend on where inside a step the start happened to be."""
+    grid, cost = scan_grid(model, data, target, values, name=name, half_range=half_range,
+                           step=step)
+    if grid.size == 0:  # no grid point inside the bounds: nothing better to move to
+        return dict(values)
+    return {**values, name: float(grid[int(np.argmin(cost))])}
+
+def scan_grid(model: ImageModel, data, target, values, *, name: str, half_range,
+              step) -> tuple[np.ndarray, np.ndarray]:
+    """The grid :func:`_scan` searches (inside the bounds; possibly empty) and χ² at each
+    of its points."""
     why = _scan_problem(model, name, half_range, step)
     if why:
         raise FitInputError(f"scan: {why}.")
@@ -57,10 +67,25 @@ def _scan(model: ImageModel, data, target, values, *, name: str, half_range,
                             math.floor((v + half_range) / step + 1e-9) + 1)
     if p.bounds is not None:
         grid = grid[(grid > p.bounds[0]) & (grid < p.bounds[1])]
-    if grid.size == 0:  # no grid point inside the bounds: nothing better to move to
-        return dict(values)
-    cost = chi2_slice(model, data, values, name, grid, target=target)
-    return {**values, name: float(grid[int(np.argmin(cost))])}
+    if grid.size == 0:
+        return grid, np.zeros(0)
+    return grid, chi2_slice(model, data, values, name, grid, target=target)
+
+def scan_rivals(grid, cost, *, within: float) -> list[tuple[float, float]]:
+    """The other minima of a scan that the data hardly tell from its lowest: grid points
+    lower than their neighbours (an end counts against its one neighbour), more than one
+    step from the lowest, whose χ² exceeds the lowest by less than ``within``; as
+    (value, Δχ²), lowest first."""
+    grid, cost = np.asarray(grid, float), np.asarray(cost, float)
+    if grid.size < 3:
+        return []
+    best = int(np.argmin(cost))
+    left = np.concatenate([[np.inf], cost[:-1]])
+    right = np.concatenate([cost[1:], [np.inf]])
+    minima = [i for i in np.flatnonzero((cost < left) & (cost <= right))
+              if abs(int(i) - best) > 1 and cost[i] - cost[best] < within]
+    return sorted(((float(grid[i]), float(cost[i] - cost[best])) for i in minima),
+                  key=lambda x: x[1])
 
 def chi2_slice(model: ImageModel, data, values: Mapping[str, float], name: str, grid,
                *, target=None) -> np.ndarray:

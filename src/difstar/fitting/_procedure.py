@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ._analysis import _scan, chi2_at, spike_target
+from ._analysis import chi2_at, scan_grid, scan_rivals, spike_target
 from ._auto import auto_stages, stages_text
 from ._data import noise_from_residuals, reject_outliers
 from ._model import ImageModel
@@ -184,9 +184,27 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
             targets = [_PixelTarget(d) for d in ds]
         kind = targets[0].kind
         if st.get("scan") is not None:
-            values = _scan(model, ds, targets, values, **dict(st["scan"]))
-            log.append({"stage": si, "scan": dict(st["scan"]),
-                        "best": values[st["scan"]["name"]]})
+            name = st["scan"]["name"]
+            grid, cost = scan_grid(model, ds, targets, values, **dict(st["scan"]))
+            entry = {"stage": si, "scan": dict(st["scan"]), "best": values[name]}
+            if grid.size:
+                values = {**values, name: float(grid[int(np.argmin(cost))])}
+                # Δχ² of one standard error, scaled by χ²/dof where the model's
+                # mismatch makes that exceed 1
+                n_used = sum(t.n for t in targets if hasattr(t, "n"))
+                within = max(1.0, float(np.min(cost)) / max(n_used - len(model.free), 1))
+                rivals = scan_rivals(grid, cost, within=within)
+                entry |= {"best": values[name], "rivals": rivals}
+                if rivals:
+                    notes.append(
+                        f"stage {si}: the scan of {name} found other minima that the data "
+                        f"hardly tell from the lowest ({values[name]:g}): " + ", ".join(
+                            f"{x:g} (Δχ² {d:.3g})" for x, d in rivals[:4])
+                        + f", each within Δχ² {within:.3g} (one standard error, scaled by "
+                        "χ²/dof). The answer may belong to another of them: bound "
+                        f"{name} nearer the value you expect, or compare the fits from "
+                        "each (chi2_slice shows the curve).")
+            log.append(entry)
             if verbose:
                 print(f"stage {si}: scan of {st['scan']['name']}: best "
                       f"{values[st['scan']['name']]:.4g}", flush=True)
