@@ -55,3 +55,30 @@ def test_normal_covariance_is_the_inverse_normal_matrix():
     cov0, norms0 = normal_covariance(j0)
     assert norms0[2] == 0 and not cov0[2].any() and not cov0[:, 2].any()
     np.testing.assert_allclose(np.delete(np.delete(cov0, 2, 0), 2, 1), cov, rtol=1e-9)
+
+
+def test_aux_of_the_answer_rides_with_the_batched_jacobian():
+    """A solve whose residuals carry an aux (values made on the way, not differentiated):
+    the result's aux is the aux at its answer, and the batched Jacobian with the aux is
+    jax.jacfwd's of the residuals alone."""
+    from difstar._lm import with_batched_jacobian
+
+    t = jnp.linspace(0.0, 1.0, 40)
+    data = 3.0 * jnp.exp(-1.7 * t) + 0.5
+
+    def raw(u, args):
+        shape = jnp.exp(-u[0] * t)
+        a = jnp.stack([shape, jnp.ones_like(t)], axis=1)  # amplitude, offset: closed form
+        beta = jnp.linalg.solve(a.T @ a, a.T @ args)
+        return a @ beta - args, beta
+
+    fn = jax.jit(with_batched_jacobian(raw, has_aux=True, batch=1))
+    u0 = jnp.asarray([0.5])
+    r, beta = fn(u0, data)
+    assert np.allclose(r, raw(u0, data)[0]) and np.allclose(beta, raw(u0, data)[1])
+    jac = jax.jacfwd(lambda u: fn(u, data)[0])(u0)
+    assert np.allclose(jac, jax.jacfwd(lambda u: raw(u, data)[0])(u0), rtol=1e-10)
+    sol = LMStepper(fn, has_aux=True, rtol=1e-10, atol=1e-12).solve(u0, data, max_steps=50)
+    assert abs(float(sol.u[0]) - 1.7) < 1e-6
+    assert np.allclose(sol.aux, raw(sol.u, data)[1], rtol=1e-10)
+    assert np.allclose(sol.aux, [3.0, 0.5], rtol=1e-6)

@@ -37,7 +37,8 @@ MAX_REJECTED = 10
 JAC_BATCH = 4
 
 
-def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None) -> Callable:
+def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
+                          has_aux: bool = False) -> Callable:
     """``fn(u, args)`` equal to ``raw(u, args)`` (residuals: any pytree of arrays, ``u``
     a flat vector) whose derivative in ``u`` is computed ``batch`` (default
     :data:`JAC_BATCH`) parameter directions
@@ -53,7 +54,13 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None)
     the columns are shared out over its devices (``shard_map``): each device linearises
     at ``u`` (the forward model, a few per cent of a step, repeated on every device) and
     computes its own slice of the directions, ``batch`` at a time; the rest of a solver
-    step (on a P-column matrix) is the same on every device."""
+    step (on a P-column matrix) is the same on every device.
+
+    ``has_aux``: ``raw`` returns (residuals, aux), aux computed on the way (values the
+    residuals were made with) and not differentiated (its tangent is zero): the same
+    trace gives both (not with ``mesh``)."""
+    if has_aux and mesh is not None:
+        raise ValueError("with_batched_jacobian: has_aux is not supported with a mesh")
     batch = JAC_BATCH if batch is None else int(batch)
     n_dev = 1 if mesh is None else int(mesh.size)
 
@@ -69,6 +76,13 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None)
         if n == 0:
             y = raw(u, args)
             return y, jax.tree_util.tree_map(jnp.zeros_like, y)
+        if has_aux:  # one linearisation: the residuals' columns, the aux as it came
+            r, column, aux = jax.linearize(lambda v: raw(v, args), u, has_aux=True)
+            b = min(batch, n)
+            eye = jnp.eye(-(-n // b) * b, n, dtype=u.dtype)
+            cols = jax.lax.map(column, eye, batch_size=b)
+            dr = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c[:n], axes=1), cols)
+            return (r, aux), (dr, jax.tree_util.tree_map(jnp.zeros_like, aux))
         b = min(batch, -(-n // n_dev))
         # the directions padded with zero rows to a whole number of batches on every
         # device: lax.map would trace (and compile) leftover directions as a second,
@@ -147,6 +161,8 @@ class SolveResult:
     #: the solver's last state: its linearisation is at ``u`` (see
     #: :meth:`LMStepper.linearisation`); None where a solve did not keep it
     state: Any = dataclasses.field(default=None, repr=False)
+    #: the aux of ``fn(u, args)`` at ``u`` (``LMStepper(..., has_aux=True)``), else None
+    aux: Any = dataclasses.field(default=None, repr=False)
 
 
 class LMStepper:
@@ -154,8 +170,10 @@ class LMStepper:
     Levenberg–Marquardt; "gn": Gauss–Newton with QR)."""
 
     def __init__(self, fn: Callable, *, method: str = "lm", rtol: float = 1e-6,
-                 atol: float = 1e-6):
-        wrapped = lambda u, a: (fn(u, a), None)  # noqa: E731
+                 atol: float = 1e-6, has_aux: bool = False):
+        # has_aux: fn returns (residuals, aux); the solve's result then carries the aux
+        # of its answer (SolveResult.aux), from the step that accepted it
+        wrapped = fn if has_aux else (lambda u, a: (fn(u, a), None))
         if method == "lm":
             sol = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
         elif method == "gn":
@@ -167,8 +185,8 @@ class LMStepper:
 
         @eqx.filter_jit
         def init(u, a):
-            f_struct = jax.eval_shape(lambda: fn(u, a))
-            return sol.init(wrapped, u, a, {}, f_struct, None, tags)
+            f_struct, aux_struct = jax.eval_shape(lambda: wrapped(u, a))
+            return sol.init(wrapped, u, a, {}, f_struct, aux_struct, tags)
 
         @eqx.filter_jit
         def step(u, state, a):
@@ -234,5 +252,5 @@ class LMStepper:
             u=u, steps=k, accepted=acc, loss_start=loss if loss0 is None else loss0,
             loss=loss, result=("converged" if ok else "failed") if done else "max_steps",
             seconds=time.perf_counter() - t0 - t_compile, compile_seconds=t_compile,
-            state=state,
+            state=state, aux=state.aux,
         )

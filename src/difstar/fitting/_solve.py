@@ -302,16 +302,15 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
             return res(v, arrays)[0], jnp.zeros(0)
         return _project(lambda b: res({**v, **dict(zip(lin, b))}, arrays)[0], len(lin))
 
-    def residuals(u, args):
-        return residuals_and_linear(u, args)[0]
-
     # the fixed values, the unbounded parameters' starts and the data are the solver's
     # arguments, not constants of its program: the same stage run again (a repeat's
     # rounds, a hop's tries, another star's window of the same size) is then the same
     # program, which JAX's compilation cache finds. The Jacobian a few columns at a time
     # (bounded memory); one trace, shared by the solver's init and step
     args = (fixed, steps, [t.arrays for t in _as_list(target)])
-    residuals = jax.jit(with_batched_jacobian(residuals))
+    # the closed-form values ride along as the residuals' aux: the solver's state holds
+    # them at its answer, so no other program computes them
+    residuals = jax.jit(with_batched_jacobian(residuals_and_linear, has_aux=True))
     u0 = jnp.asarray([_to_u(p) for p in params], float)
     with step_bar(label, max_steps) as progress:
         last = [np.asarray(u0)]
@@ -327,15 +326,13 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                 last[0] = u
                 progress(f"χ² {2 * loss:.6g}, moved most: {name or '-'}")
 
-        sol = LMStepper(residuals, rtol=rtol, atol=atol).solve(
+        sol = LMStepper(residuals, rtol=rtol, atol=atol, has_aux=True).solve(
             u0, args, max_steps=max_steps, ftol=ftol, progress=checked)
     ok = sol.result == "converged"
     status = {"converged": "converged", "failed": "not converged: the solver failed",
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
     vals = {k: float(x) for k, x in values_of(sol.u, fixed, steps).items()}
-    if lin:  # the closed-form values at the answer
-        beta = jax.jit(lambda u, a: residuals_and_linear(u, a)[1])(sol.u, args)
-        vals |= {k: float(x) for k, x in zip(lin, beta)}
+    vals |= {k: float(x) for k, x in zip(lin, np.asarray(sol.aux))}  # at the answer
     return vals, status, ok, sol.steps, 2.0 * sol.loss
 
 
