@@ -1345,29 +1345,53 @@ def test_projection_is_numpys_least_squares_and_differentiates_exactly():
     import jax
     import jax.numpy as jnp
 
-    from difstar.fitting._solve import _project
+    from difstar.fitting._solve import closed_form
 
     rng = np.random.default_rng(0)
     p, c = rng.normal(size=(50,)), rng.normal(size=(50,))
     w = rng.uniform(0.5, 2.0, 50)
 
-    def r_of_theta(theta):
-        shape = jnp.exp(-theta * jnp.arange(50) / 50.0) * p  # a PSF-like column
-        return lambda b: (b[0] * 1e3 * shape + b[1] - c) * w
+    def parts(theta):  # a PSF-like column that moves with theta, and the background's
+        shape = jnp.exp(-theta * jnp.arange(50) / 50.0) * p
+        return -c * w, jnp.stack([1e3 * shape * w, w], axis=1)
 
-    r, beta = _project(r_of_theta(0.7), 2)
+    r, beta = closed_form(*parts(0.7))
     a = np.stack([1e3 * np.exp(-0.7 * np.arange(50) / 50.0) * p * w, w], axis=1)
     want, *_ = np.linalg.lstsq(a, c * w, rcond=None)
     assert np.allclose(beta, want, rtol=1e-10)
     assert np.allclose(r, a @ want - c * w, atol=1e-10)
 
     def projected(theta):
-        return _project(r_of_theta(theta), 2)[0]
+        return closed_form(*parts(theta))[0]
 
     jac = np.asarray(jax.jacfwd(projected)(0.7))
     h = 1e-6
     fd = (np.asarray(projected(0.7 + h)) - np.asarray(projected(0.7 - h))) / (2 * h)
     assert np.allclose(jac, fd, rtol=1e-6, atol=1e-8)
+
+
+def test_linear_parts_rebuild_the_residual_of_two_captures():
+    """The affine parts (r0, A) of two captures' pixel residuals, one flux shared and a
+    background each, give back the residual the model computes at any flux and
+    backgrounds."""
+    import jax.numpy as jnp
+
+    from difstar.fitting._solve import _linear_parts, _PixelTarget, _residual_fn
+
+    clean = _numpy_star(**TRUE)
+    datas = [FitData.from_array(clean, sigma=1.0, exposure=e) for e in (1.0, 4.0)]
+    model = _model().for_captures(("x0", "y0", "background"), 2)
+    targets = [_PixelTarget(d) for d in datas]
+    res = _residual_fn(model, datas, targets)
+    arrays = [t.arrays for t in targets]
+    v = {k: jnp.asarray(p.value, float) for k, p in model.params.items()}
+    lin = ["flux", "background@0", "background@1"]
+    v1 = {**v, "flux": jnp.asarray(1.0), "background@0": jnp.asarray(0.0),
+          "background@1": jnp.asarray(0.0)}
+    r0, a = _linear_parts(model, lin, res(v1, arrays)[1], v1, arrays)
+    beta = np.array([930.0, 1.5, -0.7])
+    want = res({**v, **{q: jnp.asarray(x) for q, x in zip(lin, beta)}}, arrays)[0]
+    assert np.allclose(np.asarray(r0) + np.asarray(a) @ beta, want, rtol=1e-10, atol=1e-9)
 
 
 def test_flux_in_closed_form_ends_where_the_solver_carrying_it_ends(synthetic):

@@ -260,18 +260,34 @@ def projected_names(model: ImageModel, free: Sequence[str], target) -> list[str]
     lin = [k for k in free if k.split("@")[0] in LINEAR and model.params[k].bounds is None]
     return lin if len(lin) < len(free) else []
 
-def _project(r_of, n: int):
-    """(residual, β) at the β that minimises |r_of(β)|², for ``r_of`` affine in β (n
-    numbers): one linearisation at β = 0 gives r(0) and the n columns A, then the normal
-    equations of the column-scaled A. Differentiable: the solver's Jacobian of the
-    projected residual is the exact one (no Kaufman approximation)."""
-    r0, column = jax.linearize(r_of, jnp.zeros(n))
-    a = jax.vmap(column, out_axes=1)(jnp.eye(n))
+def closed_form(r0, a):
+    """(r0 + A β, β) at the β that minimises |r0 + A β|² (A: residuals × n), by the
+    normal equations of the column-scaled A. Differentiable: the solver's Jacobian of
+    the projected residual is the exact one (no Kaufman approximation)."""
     norm = jnp.sqrt(jnp.sum(a * a, axis=0))
     scale = jnp.where(norm > 0, norm, 1.0)
     an = a / scale
     beta = -jnp.linalg.solve(an.T @ an, an.T @ r0) / scale
     return r0 + a @ beta, beta
+
+def _linear_parts(model: ImageModel, lin: Sequence[str], images, v1, arrays):
+    """(r0, A) of the pixel residuals as an affine function of the ``lin`` values, from
+    each capture's model image at ``v1`` (those fluxes at 1, backgrounds at 0): the image
+    is flux · (exposure · PSF) + background, so the flux's column is the image less its
+    background, the background's the weights, over the captures each name serves
+    (``flux`` all of them, ``flux@i`` capture i)."""
+    r0s, cols = [], [[] for _ in lin]
+    for i, (m, (img, wgt)) in enumerate(zip(images, arrays)):
+        b = model.capture_values(v1, i)["background"]
+        shape = m - b  # flux × exposure × PSF (flux 1 where projected)
+        serves = [q == q.split("@")[0] or q == f"{q.split('@')[0]}@{i}" for q in lin]
+        kinds = {q.split("@")[0] for q, ok in zip(lin, serves) if ok}
+        base = (0.0 if "flux" in kinds else shape) + (0.0 if "background" in kinds else b)
+        r0s.append(((base - img) * wgt).ravel())
+        for j, (q, ok) in enumerate(zip(lin, serves)):
+            col = shape * wgt if q.split("@")[0] == "flux" else wgt * jnp.ones_like(m)
+            cols[j].append(col.ravel() if ok else jnp.zeros(m.size))
+    return jnp.concatenate(r0s), jnp.stack([jnp.concatenate(c) for c in cols], axis=1)
 
 def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                 atol: float, ftol: float, label: str | None):
@@ -300,7 +316,9 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
         v = values_of(u, fixed, steps)
         if not lin:
             return res(v, arrays)[0], jnp.zeros(0)
-        return _project(lambda b: res({**v, **dict(zip(lin, b))}, arrays)[0], len(lin))
+        v1 = {**v, **{q: jnp.asarray(1.0 if q.split("@")[0] == "flux" else 0.0)
+                      for q in lin}}
+        return closed_form(*_linear_parts(model, lin, res(v1, arrays)[1], v1, arrays))
 
     # the fixed values, the unbounded parameters' starts and the data are the solver's
     # arguments, not constants of its program: the same stage run again (a repeat's
