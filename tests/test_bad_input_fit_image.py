@@ -461,9 +461,11 @@ def test_fit_refuses_bad_arguments_before_solving(monkeypatch):
                       (dict(starts={"x0": [0.1] * 50, "y0": [0.1] * 50}), "at most 1000")):
         with pytest.raises(FitInputError, match=re.escape(match)):
             fitting.fit(model, data, **kw)
+    from difstar.fitting._analysis import _scan
+
     with pytest.raises(FitInputError, match="scan: half_range 1 / step 1e-09"):
-        fitting._scan(model, [data], None, model.values(), name="rotation",
-                      half_range=1.0, step=1e-9)
+        _scan(model, [data], None, model.values(), name="rotation", half_range=1.0,
+              step=1e-9)
 
 
 # ------------------------------------------------------------- property-based tests
