@@ -76,13 +76,6 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
         if n == 0:
             y = raw(u, args)
             return y, jax.tree_util.tree_map(jnp.zeros_like, y)
-        if has_aux:  # one linearisation: the residuals' columns, the aux as it came
-            r, column, aux = jax.linearize(lambda v: raw(v, args), u, has_aux=True)
-            b = min(batch, n)
-            eye = jnp.eye(-(-n // b) * b, n, dtype=u.dtype)
-            cols = jax.lax.map(column, eye, batch_size=b)
-            dr = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c[:n], axes=1), cols)
-            return (r, aux), (dr, jax.tree_util.tree_map(jnp.zeros_like, aux))
         b = min(batch, -(-n // n_dev))
         # the directions padded with zero rows to a whole number of batches on every
         # device: lax.map would trace (and compile) leftover directions as a second,
@@ -91,18 +84,25 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
 
         def columns(eye, u, args):
             # one trace of the chain: linearised once, its linear map applied to the
-            # rows of eye (parameter directions), b at a time
-            y, column = jax.linearize(lambda v: raw(v, args), u)
-            return y, jax.lax.map(column, eye, batch_size=b)
+            # rows of eye (parameter directions), b at a time; an empty aux where raw
+            # gives none
+            def with_aux(v):
+                out = raw(v, args)
+                return out if has_aux else (out, ())
+
+            y, column, aux = jax.linearize(with_aux, u, has_aux=True)
+            return y, aux, jax.lax.map(column, eye, batch_size=b)
 
         if mesh is not None:  # each device its own rows of eye; y is the same on all
             from ._batch import AXIS, P
 
             columns = jax.shard_map(columns, mesh=mesh, in_specs=(P(AXIS), P(), P()),
-                                    out_specs=(P(), P(AXIS)), check_vma=False)
-        y, cols = columns(eye, u, args)
+                                    out_specs=(P(), P(), P(AXIS)), check_vma=False)
+        y, aux, cols = columns(eye, u, args)
         dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c[:n], axes=1), cols)
-        return y, dy
+        if not has_aux:
+            return y, dy
+        return (y, aux), (dy, jax.tree_util.tree_map(jnp.zeros_like, aux))
 
     return fn
 
