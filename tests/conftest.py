@@ -8,7 +8,6 @@ pytest-xdist worker runs hundreds of tests in one process, and JAX's caches woul
 otherwise grow with every shape compiled (over 10 GB per worker by the end of the suite).
 """
 
-import gc
 import os
 
 import jax
@@ -41,5 +40,6 @@ def _session_compilation_cache(tmp_path_factory):
 @pytest.fixture(autouse=True, scope="module")
 def _free_jax_caches():
     yield
-    jax.clear_caches()
-    gc.collect()
+    from difstar.fitting._programs import release_programs
+
+    release_programs()  # the fits' kept programs, and JAX's caches

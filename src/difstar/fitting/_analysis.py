@@ -8,14 +8,13 @@ import math
 import warnings
 from collections.abc import Mapping
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._data import FitData, _angle_from, _polar
 from ._model import ImageModel
 from ._params import PERTURB, FitInputError, _finite
-from ._solve import SpikeProfiles, _as_list, _PixelTarget, _residual_fn
+from ._solve import SpikeProfiles, _as_list, _PixelTarget, model_images
 
 #: the most grid points a stage's ``scan`` may try (each one a model image: a scan step
 #: of 1e-7 ran for minutes)
@@ -103,12 +102,7 @@ def chi2_slice(model: ImageModel, data, values: Mapping[str, float], name: str, 
     if g.size == 0 or not np.all(np.isfinite(g)):
         raise FitInputError(f"chi2_slice: grid must be a non-empty list of finite values; "
                             f"got {grid!r}.")
-    datas = _as_list(data)
-    targets = [_PixelTarget(d) for d in datas] if target is None else _as_list(target)
-    res = _residual_fn(model, datas, targets)
-    base = {k: jnp.asarray(x, float) for k, x in values.items()}
-    chi2 = jax.jit(lambda x: jnp.sum(res({**base, name: x})[0] ** 2))
-    return np.array([float(chi2(jnp.asarray(x, float))) for x in g])
+    return np.array([chi2_at(model, data, {**values, name: float(x)}, target) for x in g])
 
 def spike_target(data: FitData, values: Mapping[str, float], *, n_spikes=8, r_min=12.0,
                  r_max=45.0, half_width=4.0, bin_width=0.25, profiles=True,
@@ -170,15 +164,13 @@ def chi2_at(model: ImageModel, data, values: Mapping[str, float], target=None) -
     """χ² = Σ ((data − model) / σ)² over the used pixels of ``data`` (a :class:`FitData`
     or a list of them) at ``values``; ``model`` as the fit had it (its own values are
     replaced by ``values``). ``target``: a spike stage's target instead of the pixels."""
-    model = model.with_values(values)
-    if target is None:
-        target = [_PixelTarget(d) for d in _as_list(data)]
-    v = {k: jnp.asarray(x, float) for k, x in values.items()}
-    res = _residual_fn(model, data, target)
-    # one program, the data its arguments (as in the solver): a repeat's rounds and a
-    # hop's tries evaluate the same program, which JAX's compilation cache finds
-    chi2 = jax.jit(lambda v_, arrays: jnp.sum(res(v_, arrays)[0] ** 2))
-    return float(chi2(v, [t.arrays for t in _as_list(target)]))
+    datas = _as_list(data)
+    targets = [_PixelTarget(d) for d in datas] if target is None else _as_list(target)
+    # the model images from the one program that makes them (model_images: the values
+    # its arguments, kept in ._programs), the residuals of the targets on the host
+    images = model_images(model, values, datas)
+    return float(sum(np.sum(np.asarray(t(jnp.asarray(m), model.capture_values(values, i)))
+                            ** 2) for i, (t, m) in enumerate(zip(targets, images))))
 
 def spike_angles(image, centre=None, *, r_min=15.0, r_max=40.0, n_spikes=6, bins=720,
                  symmetric=True, near=None, window=8.0):

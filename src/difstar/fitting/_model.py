@@ -322,6 +322,28 @@ class ImageModel:
         return (self.pupil.segment is not None and p is not None
                 and (p.free or p.value != 0))
 
+    @property
+    def has_distortion(self) -> bool:
+        """Whether the pupil is distorted (``shear`` or ``aspect`` free or not 0)."""
+        return any(self.params[k].free or self.params[k].value != 0
+                   for k in ("shear", "aspect"))
+
+    @property
+    def plan_cache(self) -> dict:
+        """The PSF plans this model made (:meth:`plan`), shared by every copy
+        :meth:`with_values`, :meth:`for_captures` and :meth:`with_resampling` make: it
+        stands for the model's construction (pupil builder, light, Zernike terms,
+        detector options, source) in :meth:`trace_key`."""
+        return self._plans
+
+    def trace_key(self) -> tuple:
+        """What a trace of :meth:`image` depends on besides the values: the model's
+        construction (by its :attr:`plan_cache`, which a caller keeps alive while it
+        uses the key), the resampling, the parameters' names, the per-capture names, and
+        which optional parts are on (the segments' incoherent part, the distortion)."""
+        return (id(self._plans), self.resampling, tuple(self.params), self.per_capture,
+                self.has_incoherent, self.has_distortion)
+
     def padded_shape(self, shape) -> tuple[int, int]:
         """The window the PSF is computed on for a data window ``shape``: ``pad`` data
         pixels more on every side (light from outside the window that falls into it)."""
@@ -385,7 +407,7 @@ class ImageModel:
     def _oriented(self, pup, v):
         """``pup`` rotated by ``rotation`` and distorted by ``shear``, ``aspect``."""
         pup = pup.transformed(jnp.deg2rad(v["rotation"]))
-        if any(self.params[k].free or self.params[k].value != 0 for k in ("shear", "aspect")):
+        if self.has_distortion:
             d = image_distortion(v["shear"], v["aspect"])
             pup = distorted(pup, jnp.linalg.inv(d).T)  # the pupil map for image map D
         return pup
@@ -396,9 +418,6 @@ class ImageModel:
         scalars, traceable), for a capture of relative ``exposure`` in ``light`` (default:
         the model's)."""
         light = self.light if light is None else light
-        h, w = shape
-        o = self.oversample
-        pad = self.pad
         hp, wp = self.padded_shape(shape)
         plan = self.plan((hp, wp), light) if plan is None else plan
         ang = v["pixel_scale"] * ARCSEC  # radians per data pixel
@@ -427,13 +446,25 @@ class ImageModel:
                       wavefront=_Shifted(None, tx, ty))
             img = (1.0 - v["incoherent"]) * img + v["incoherent"] * seg
         # detector: native pixel box (oversampled data) and Gaussian blur, by FFT
-        fy = np.fft.fftfreq(hp)[:, None]
-        fx = np.fft.rfftfreq(wp)[None, :]
+        kern = self.detector_kernel(v, (hp, wp))
+        img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
+        return self.read_out(img, v, shape, exposure)
+
+    def detector_kernel(self, v: Mapping[str, Any], padded: tuple[int, int], q: int = 1):
+        """The transfer function of what acts on the image after the optics, on the
+        half spectrum (``rfft2``) of the ``padded`` window sampled ``q`` times a data
+        pixel a side: the jitter's and the halos' Gaussians, a native pixel's box
+        (oversampled data), the co-add's resampling kernel and the source's disc or
+        image (its image only at q = 1)."""
+        hp, wp = padded
+        fy = np.fft.fftfreq(hp * q)[:, None] * q  # cycles per data pixel
+        fx = np.fft.rfftfreq(wp * q)[None, :] * q
         f2 = fx**2 + fy**2
         kern = jnp.exp(-2 * math.pi**2 * v["jitter"] ** 2 * f2)
         for frac, width in (("halo", "halo_width"), ("halo2", "halo2_width")):
             kern = kern * ((1.0 - v[frac])
                            + v[frac] * jnp.exp(-2 * math.pi**2 * v[width] ** 2 * f2))
+        o = self.oversample
         if o != 1.0:
             kern = kern * jnp.asarray(np.sinc(o * fx) * np.sinc(o * fy))
         if self.resampling:
@@ -442,8 +473,18 @@ class ImageModel:
         if isinstance(self.source, str) and self.source == "disc":
             kern = kern * disc_transform(2 * math.pi * np.sqrt(f2) * v["source_radius"])
         elif not isinstance(self.source, str):
+            if q != 1:
+                raise ValueError("detector_kernel: a source image is defined on the data's "
+                                 "pixels (q = 1 only).")
             kern = kern * self._source_spectrum((hp, wp))
-        img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
+        return kern
+
+    def read_out(self, img, v: Mapping[str, Any], shape, exposure: float = 1.0):
+        """The data window (``shape``) of the padded image ``img`` (the PSF after the
+        detector's blurs, unit flux) times flux and exposure, through the response
+        curve, plus the background."""
+        h, w = shape
+        pad = self.pad
         img = v["flux"] * exposure * img[pad:pad + h, pad:pad + w]
         if self.response:
             img = v["white"] * response_curve(img / v["white"], v["toe"], v["knee"])

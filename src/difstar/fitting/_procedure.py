@@ -19,7 +19,6 @@ from ._solve import (
     _errors,
     _one_fit,
     _PixelTarget,
-    _release_compiled,
     model_images,
 )
 from ._stages import _check_fit_inputs, _put
@@ -238,7 +237,6 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
             entry["directions"] = [t.directions for t in targets] if n_cap > 1 \
                 else targets[0].directions
             spike_errors[si] = errs
-        _release_compiled()
         return values, status, ok, steps, datas
 
     def solving_before(si):

@@ -5,7 +5,6 @@ and :class:`FitResult`."""
 from __future__ import annotations
 
 import dataclasses
-import gc
 import math
 import warnings
 from collections.abc import Mapping, Sequence
@@ -18,9 +17,11 @@ import numpy as np
 from .._lm import normal_covariance
 from .._param import step_map
 from .._progress import moved_most, step_bar
+from ._centred import centred_psf, fine_factor, image_from_centred, optics_fixed
 from ._data import FitData, _angle_from, _polar
 from ._model import ImageModel
 from ._params import FitInputError, _from_u, _to_u
+from ._programs import program, trace_key
 
 
 @dataclasses.dataclass
@@ -80,6 +81,8 @@ class _PixelTarget:
     """The residuals (model − data)/σ on the data's used pixels."""
 
     kind = "pixels"
+    #: what a trace of :meth:`__call__` depends on besides its arrays (:mod:`._programs`)
+    signature = ("pixels",)
 
     def __init__(self, data: FitData):
         self.data = data
@@ -153,6 +156,11 @@ class SpikeProfiles:
         self.directions = [float(d) for d in directions]
 
     @property
+    def signature(self):
+        """What a trace of :meth:`__call__` depends on besides its arrays."""
+        return ("profiles", self.n_windows)
+
+    @property
     def arrays(self):
         """The data this target compares with (see :attr:`_PixelTarget.arrays`)."""
         return (self.mat, jnp.asarray(self.window), self.data_profile, self.wgt)
@@ -164,18 +172,27 @@ class SpikeProfiles:
         return (pm / sums[window] - profile) * wgt
 
 def _residual_fn(model: ImageModel, data, target):
-    """(values, arrays) → (residual vector, [model image of each capture]) for ``model``
-    on each of ``data``'s windows (a FitData or a list of them, one ``target`` each);
-    ``arrays``: each target's :attr:`~_PixelTarget.arrays` as traced arguments (None: the
-    targets' own, as constants)."""
+    """(values, arrays, psfs) → (residual vector, [model image of each capture]) for
+    ``model`` on each of ``data``'s windows (a FitData or a list of them, one ``target``
+    each); ``arrays``: each target's :attr:`~_PixelTarget.arrays` as traced arguments
+    (None: the targets' own, as constants); ``psfs``: each capture's
+    :func:`~._centred.centred_psf` where the optics are held (None: the PSF engine at
+    every call)."""
     datas, targets = _as_list(data), _as_list(target)
     plans = [model.plan(model.padded_shape(d.image.shape), d.light) for d in datas]
+    qs = [fine_factor(model, d.light if d.light is not None else model.light)
+          for d in datas]
 
-    def res(v, arrays=None):
+    def res(v, arrays=None, psfs=None):
         rs, ms = [], []
         for i, (d, t, plan) in enumerate(zip(datas, targets, plans)):
             vi = model.capture_values(v, i)
-            m = model.image(vi, d.image.shape, plan, exposure=d.exposure, light=d.light)
+            if psfs is not None:
+                m = image_from_centred(model, vi, d.image.shape, psfs[i], qs[i],
+                                       exposure=d.exposure)
+            else:
+                m = model.image(vi, d.image.shape, plan, exposure=d.exposure,
+                                light=d.light)
             rs.append(t(m, vi, None if arrays is None else arrays[i]))
             ms.append(m)
         return (rs[0] if len(rs) == 1 else jnp.concatenate(rs)), ms
@@ -190,8 +207,14 @@ def model_images(model: ImageModel, values: Mapping[str, float], data) -> list:
     datas = _as_list(data)
     targets = [_PixelTarget(d) for d in datas]
     v = {k: jnp.asarray(x, float) for k, x in values.items()}
-    res = _residual_fn(model.with_values(values), datas, targets)
-    images = jax.jit(lambda v_, arrays: res(v_, arrays)[1])
+    model = model.with_values(values)
+    key, keep = trace_key(model, datas, targets)
+
+    def make():
+        res = _residual_fn(model, datas, targets)
+        return jax.jit(lambda v_, arrays: res(v_, arrays)[1])
+
+    images = program(("images", key), make, keep)
     return [np.asarray(m) for m in images(v, [t.arrays for t in targets])]
 
 def values_of_capture(values: Mapping[str, Any], i: int) -> dict:
@@ -199,17 +222,6 @@ def values_of_capture(values: Mapping[str, Any], i: int) -> dict:
     result, or a result.json's values, for any per-capture names)."""
     tag = f"@{i}"
     return {**values, **{k[:-len(tag)]: x for k, x in values.items() if k.endswith(tag)}}
-
-def _release_compiled() -> None:
-    """Drop JAX's compiled programs and traces once a stage is done. Each stage (and each
-    re-run of one in a hop) traces new closures over the data and the model's plans;
-    JAX's caches keep their programs, and the constants they hold, after the closures are
-    gone: about 0.4 GB per stage on the JWST star, so a fit and its rough starts ran out
-    of 24 GB. A stage never reuses another's programs, so nothing is compiled twice
-    because of this (other jitted functions of the process compile again on their next
-    call)."""
-    jax.clear_caches()
-    gc.collect()
 
 def _as_list(x):
     return list(x) if isinstance(x, (list, tuple)) else [x]
@@ -299,7 +311,6 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     free = [k for k in model.free if k not in lin]
     fixed = {k: jnp.asarray(p.value, float) for k, p in model.params.items() if not p.free}
     params = [model.params[k] for k in free]
-    res = _residual_fn(model, data, target)
 
     # an unbounded parameter's start and step (start + step·u) vary from stage to stage
     steps = {k: (jnp.asarray(p.value, float), jnp.asarray(p.step_scale(), float))
@@ -311,24 +322,43 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
             v[k] = step_map(u[i], *steps[k]) if k in steps else _from_u(p, u[i])
         return v
 
-    def residuals_and_linear(u, args):
-        fixed, steps, arrays = args
-        v = values_of(u, fixed, steps)
-        if not lin:
-            return res(v, arrays)[0], jnp.zeros(0)
-        v1 = {**v, **{q: jnp.asarray(1.0 if q.split("@")[0] == "flux" else 0.0)
-                      for q in lin}}
-        return closed_form(*_linear_parts(model, lin, res(v1, arrays)[1], v1, arrays))
+    def make():
+        res = _residual_fn(model, data, target)
+
+        def residuals_and_linear(u, args):
+            fixed, steps, arrays, psfs = args
+            v = values_of(u, fixed, steps)
+            if not lin:
+                return res(v, arrays, psfs)[0], jnp.zeros(0)
+            v1 = {**v, **{q: jnp.asarray(1.0 if q.split("@")[0] == "flux" else 0.0)
+                          for q in lin}}
+            return closed_form(*_linear_parts(model, lin, res(v1, arrays, psfs)[1], v1,
+                                              arrays))
+
+        # the Jacobian a few columns at a time (bounded memory); one trace, shared by
+        # the solver's init and step; the closed-form values ride along as the
+        # residuals' aux: the solver's state holds them at its answer, so no other
+        # program computes them
+        residuals = jax.jit(with_batched_jacobian(residuals_and_linear, has_aux=True))
+        return LMStepper(residuals, rtol=rtol, atol=atol, has_aux=True)
 
     # the fixed values, the unbounded parameters' starts and the data are the solver's
     # arguments, not constants of its program: the same stage run again (a repeat's
     # rounds, a hop's tries, another star's window of the same size) is then the same
-    # program, which JAX's compilation cache finds. The Jacobian a few columns at a time
-    # (bounded memory); one trace, shared by the solver's init and step
-    args = (fixed, steps, [t.arrays for t in _as_list(target)])
-    # the closed-form values ride along as the residuals' aux: the solver's state holds
-    # them at its answer, so no other program computes them
-    residuals = jax.jit(with_batched_jacobian(residuals_and_linear, has_aux=True))
+    # program, kept in :mod:`._programs` (and, across processes, in JAX's compilation
+    # cache); what else its trace depends on is the key
+    # where the optics are held, one PSF at the star's centre serves every step
+    # (:mod:`._centred`): computed here, an argument of the program
+    datas = _as_list(data)
+    psfs = None
+    if optics_fixed(model, model.free):
+        at = model.values()
+        psfs = [jnp.asarray(centred_psf(model, model.capture_values(at, i), d.image.shape,
+                                        d.light)) for i, d in enumerate(datas)]
+    args = (fixed, steps, [t.arrays for t in _as_list(target)], psfs)
+    key, keep = trace_key(model, datas, _as_list(target))
+    stepper = program(("solve", key, tuple(free), tuple(p.bounds for p in params),
+                       tuple(lin), float(rtol), float(atol), psfs is not None), make, keep)
     u0 = jnp.asarray([_to_u(p) for p in params], float)
     with step_bar(label, max_steps) as progress:
         last = [np.asarray(u0)]
@@ -344,8 +374,7 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                 last[0] = u
                 progress(f"χ² {2 * loss:.6g}, moved most: {name or '-'}")
 
-        sol = LMStepper(residuals, rtol=rtol, atol=atol, has_aux=True).solve(
-            u0, args, max_steps=max_steps, ftol=ftol, progress=checked)
+        sol = stepper.solve(u0, args, max_steps=max_steps, ftol=ftol, progress=checked)
     ok = sol.result == "converged"
     status = {"converged": "converged", "failed": "not converged: the solver failed",
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
@@ -364,27 +393,35 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
 
     free = model.free
     base = {k: jnp.asarray(v, float) for k, v in values.items()}
-    resv = _residual_fn(model, data, target)
 
-    def res(x, args):  # the values and data as arguments (see _solve_once)
-        base, arrays = args
-        v = dict(base)
-        for i, k in enumerate(free):
-            v[k] = x[i]
-        return resv(v, arrays)
+    def make():
+        resv = _residual_fn(model, data, target)
 
+        def res(x, args):  # the values and data as arguments (see _solve_once)
+            base, arrays = args
+            v = dict(base)
+            for i, k in enumerate(free):
+                v[k] = x[i]
+            return resv(v, arrays)
+
+        if not residual:
+            batched = with_batched_jacobian(lambda x, a: res(x, a)[0])
+            return jax.jit(jax.jacfwd(batched))
+        both = with_batched_jacobian(res)  # (residual, model images), one linearisation
+
+        def with_values(x, a):  # the residual differentiated, both returned as they are
+            out = both(x, a)
+            return out[0], out
+
+        return jax.jit(jax.jacfwd(with_values, has_aux=True))
+
+    key, keep = trace_key(model, _as_list(data), _as_list(target))
+    jacobian = program(("jacobian", key, tuple(free), residual), make, keep)
     x0 = jnp.asarray([values[k] for k in free], float)
     args = (base, [t.arrays for t in _as_list(target)])
     if not residual:
-        batched = with_batched_jacobian(lambda x, a: res(x, a)[0])
-        return np.asarray(jax.jit(jax.jacfwd(batched))(x0, args))
-    both = with_batched_jacobian(res)  # (residual, model images), one linearisation
-
-    def with_values(x, a):  # the residual differentiated, both returned as they are
-        out = both(x, a)
-        return out[0], out
-
-    jac, (r, m) = jax.jit(jax.jacfwd(with_values, has_aux=True))(x0, args)
+        return np.asarray(jacobian(x0, args))
+    jac, (r, m) = jacobian(x0, args)
     return np.asarray(jac), np.asarray(r), [np.asarray(mi) for mi in m]
 
 def _errors(model: ImageModel, data, values: Mapping[str, float], target=None):

@@ -1,0 +1,101 @@
+"""One PSF for a whole solve where the optics stay as they are: a stage that frees only
+what acts after the optics (the star's position, flux, background, the detector's blurs,
+the source's disc, the response curve) computes the PSF once, at the window's centre,
+and moves it by a phase ramp of its spectrum at every step. A step then costs a few
+FFTs instead of the PSF engine (the JWST star's whole-image stages: the PSF of 18
+segments in 3 wavelengths, and its tangent in each free direction).
+
+The PSF is point-sampled q times finer than the data's pixels a side, with q odd and
+above twice the intensity's bandwidth (:func:`fine_factor`): the intensity is
+band-limited (its spectrum, the OTF, vanishes beyond 2R/(λ z)), so at that rate its
+samples determine it and a shift, the pixels' squares (their transform, a sinc) and the
+blurs are exact in the spectrum; each data pixel is then the sample at its centre. The
+window is periodic, as the direct path's blurs already take it; a move of up to the
+padding's width wraps only into the padding, which is cut away."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._psf import psf
+from .._zernike import Zernike
+from ._params import _PITCH, ARCSEC
+
+#: the parameters one PSF at the star's centre serves: a move of the star is a phase ramp
+#: of its spectrum, the rest act after the optics
+AFTER_OPTICS = frozenset({"x0", "y0", "flux", "background", "jitter", "halo", "halo_width",
+                          "halo2", "halo2_width", "source_radius", "white", "toe", "knee"})
+
+
+def optics_fixed(model, free: Sequence[str]) -> bool:
+    """Whether a solve of ``free`` (names, ``name@i`` as ``name``) leaves the optics as
+    they are, so that :func:`centred_psf` serves all its steps: every name acts after
+    the optics, and nothing after them is defined on the data's pixels alone (a
+    co-add's resampling kernel, a source image)."""
+    return (bool(free) and not model.resampling and isinstance(model.source, str)
+            and all(k.split("@")[0] in AFTER_OPTICS for k in free))
+
+
+def fine_factor(model, light=None) -> int:
+    """q: the fewest odd samples a data pixel a side above the intensity's Nyquist rate,
+    2 × its bandwidth 2R·θ/λ cycles per data pixel (R the pupil's largest radius, θ the
+    largest angle a data pixel spans, λ the shortest wavelength)."""
+    light = model.light if light is None else light
+    ang = model._bound("pixel_scale", max) * ARCSEC
+    band = 2.0 * float(model.pupil.max_radius) * ang / float(np.min(light.wavelengths))
+    q = int(math.floor(2.0 * band)) + 1
+    return q if q % 2 else q + 1
+
+
+def centred_psf(model, v: Mapping[str, Any], shape, light=None) -> np.ndarray:
+    """The star's PSF at the window's centre (``x0 = y0 = 0``) for the optics at values
+    ``v``, the segments' incoherent part mixed in: point samples on the padded window,
+    :func:`fine_factor` times finer than the data's pixels, scaled so that a data
+    pixel's square holds the sum of its q × q samples (q² × the fraction of the power
+    per fine sample's area)."""
+    light = model.light if light is None else light
+    hp, wp = model.padded_shape(shape)
+    q = fine_factor(model, light)
+    v = {k: jnp.asarray(x, float) for k, x in {**v, "x0": 0.0, "y0": 0.0}.items()}
+    ang = v["pixel_scale"] * ARCSEC
+    zern = None
+    if model.zernike:
+        zern = Zernike({j: 1e-9 * v[f"z{j}"] for j in model.zernike},
+                       float(model.pupil.max_radius))
+    kw = dict(wavelength=np.asarray(light.wavelengths), weights=np.asarray(light.weights),
+              z_image=_PITCH / ang, pixel_pitch=_PITCH / q, shape=(hp * q, wp * q),
+              sampling="point", accuracy=model.accuracy)
+    img = psf(model._pupil_at(v), wavefront=zern, **kw)
+    if model.has_incoherent:  # as ImageModel.image mixes it
+        seg = psf(model._oriented(model.pupil.segment(v), v), **kw)
+        img = (1.0 - v["incoherent"]) * img + v["incoherent"] * seg
+    return np.asarray(img) * q * q
+
+
+def image_from_centred(model, v: Mapping[str, Any], shape, centred, q: int,
+                       exposure: float = 1.0):
+    """The model image (H, W) at values ``v`` from ``centred`` (:func:`centred_psf` at
+    the optics of ``v``): moved by (``x0`` columns right, ``y0`` rows down), each data
+    pixel's square integrated, the detector's blurs applied, all in the spectrum; then
+    the sample at each data pixel's centre, read out as :meth:`ImageModel.image` does.
+    Traceable in the values."""
+    hp, wp = model.padded_shape(shape)
+    fy = np.fft.fftfreq(hp * q)[:, None] * q  # cycles per data pixel
+    fx = np.fft.rfftfreq(wp * q)[None, :] * q
+    box = jnp.asarray(np.sinc(fx) * np.sinc(fy))
+    ramp = jnp.exp(-2j * math.pi * (fx * v["x0"] + fy * v["y0"]))
+    kern = model.detector_kernel(v, (hp, wp), q) * box * ramp
+    img = jnp.fft.irfft2(jnp.fft.rfft2(centred) * kern, s=(hp * q, wp * q))
+    # data pixel k's centre is fine sample k q + c (the axis: data pixel hp // 2, fine
+    # sample hp q // 2)
+    cy, cx = (hp * q) // 2 - (hp // 2) * q, (wp * q) // 2 - (wp // 2) * q
+    return model.read_out(img[cy::q, cx::q][:hp, :wp], v, shape, exposure)
+
+
+__all__ = ["AFTER_OPTICS", "centred_psf", "fine_factor", "image_from_centred",
+           "optics_fixed"]
