@@ -123,3 +123,32 @@ def test_kept_programs_are_bounded(monkeypatch):
     assert _programs.program(("k", 4), lambda: "made again") == 4
     _programs.release_programs()
     assert len(_programs._PROGRAMS) == 0
+
+
+def test_a_spike_stages_errors_come_from_its_solvers_last_linearisation(monkeypatch):
+    """The standard error of a spike stage is the one the Jacobian program gives at its
+    answer, without compiling that program (the solver's last linearisation, mapped
+    from its unconstrained coordinate to degrees)."""
+    true = dict(TRUE, rotation=7.3, flux=1e5)
+    clean = _numpy_star((41, 41), **true)
+    sigma = 1e-4 * clean.max()
+    data = FitData.from_array(clean + np.random.default_rng(4).normal(0, sigma, clean.shape),
+                              sigma=sigma)
+    held = {k: Param(true[k]) for k in ("x0", "y0", "flux", "background")}
+    stage = [{"free": ["rotation"], "spikes": {"r_min": 6, "r_max": 20, "n_spikes": 6,
+                                               "half_width": 6, "bin_width": 0.5}}]
+    jacobians = []
+    real = _solve._jacobian
+    monkeypatch.setattr(_solve, "_jacobian",
+                        lambda *a, **k: jacobians.append(1) or real(*a, **k))
+    res = fit(_model(**held), data, stages=stage, max_steps=30)
+    spike_errors = res.stages[0]["errors"]
+    assert len(jacobians) == 1  # the final errors' only, on all pixels
+    # the same stage with the Jacobian program: the same standard error
+    monkeypatch.setattr(_solve, "_linearised", lambda *a: None)
+    again = fit(_model(**held), data, stages=stage, max_steps=30)
+    assert len(jacobians) == 3
+    assert again.values["rotation"] == pytest.approx(res.values["rotation"], abs=1e-12)
+    assert spike_errors["rotation"] == pytest.approx(again.stages[0]["errors"]["rotation"],
+                                                     rel=1e-6)
+    assert res.errors["rotation"] == pytest.approx(again.errors["rotation"], rel=1e-6)

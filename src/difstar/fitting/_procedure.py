@@ -216,7 +216,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
         for tr in tries:
             m = model.with_values({**values, **tr}, free=names)
             ts = time.perf_counter()
-            vals, status, ok, n, m, chi2 = _one_fit(m, ds, targets, max_steps=int(
+            vals, status, ok, n, m, chi2, lin = _one_fit(m, ds, targets, max_steps=int(
                 st.get("max_steps", max_steps)), rtol=float(st.get("rtol", rtol)), atol=atol,
                 label=f"stage {si}" if verbose else None)
             entry = {"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
@@ -227,12 +227,12 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
                 print(f"stage {si} ({kind}) start {tr}: chi2 {chi2:.6g} {status} "
                       f"{n} steps {time.perf_counter() - ts:.1f} s", flush=True)
             if best is None or chi2 < best[0]:
-                best = (chi2, vals, status, ok, n, m, entry)
-        _, values, status, ok, steps, m, entry = best
+                best = (chi2, vals, status, ok, n, m, entry, lin)
+        _, values, status, ok, steps, m, entry, lin = best
         for k in names:
             last_stage[k] = si
-        if kind != "pixels":
-            errs = _errors(m, ds, values, targets)[0]
+        if kind != "pixels":  # from the solver's last linearisation where it serves
+            errs = _errors(m, ds, values, targets, linearised=lin)[0]
             entry["errors"] = errs
             entry["directions"] = [t.directions for t in targets] if n_cap > 1 \
                 else targets[0].directions

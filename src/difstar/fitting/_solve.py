@@ -236,16 +236,17 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     start's values, and again from the answer wherever that needs a finer plan (at most
     :data:`MAX_REPLANS` times); with ``label``, a progress bar (tqdm, on stderr) of its
     steps and χ². Returns (values, status, converged, steps, the model at the values, the
-    χ² of ``target`` at the values on the plan they were solved on: the solver's own)."""
+    χ² of ``target`` at the values on the plan they were solved on: the solver's own,
+    and a function giving the Jacobian and residuals there from the solver's last
+    linearisation, or None: :func:`_linearised`)."""
     if not model.free:
         raise FitInputError("fit: no free parameter (set free=true on at least one).")
     shapes = [(model.padded_shape(d.image.shape), d.light) for d in _as_list(data)]
     steps = 0
     for k in range(MAX_REPLANS + 1):
-        vals, status, ok, n, chi2 = _solve_once(model, data, target, max_steps=max_steps,
-                                          rtol=rtol, atol=atol, ftol=ftol,
-                                          label=None if label is None else
-                                          label + (f" (plan {k + 1})" if k else ""))
+        vals, status, ok, n, chi2, lin = _solve_once(
+            model, data, target, max_steps=max_steps, rtol=rtol, atol=atol, ftol=ftol,
+            label=None if label is None else label + (f" (plan {k + 1})" if k else ""))
         steps += n
         holds = all(model.plan_holds(vals, s, li) for s, li in shapes)
         model = model.with_values(vals)
@@ -256,7 +257,7 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                       f"{MAX_REPLANS + 1} solves; its values were computed on a plan made "
                       "for smaller terms. Check the Zernike bounds, or start nearer the "
                       "answer.", RuntimeWarning, stacklevel=2)
-    return vals, status, ok, steps, model, chi2
+    return vals, status, ok, steps, model, chi2, lin
 
 #: the parameters that enter a capture's image linearly (image = flux · exposure · PSF +
 #: background, without a response curve): a solve takes them in closed form
@@ -380,7 +381,32 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
     vals = {k: float(x) for k, x in values_of(sol.u, fixed, steps).items()}
     vals |= {k: float(x) for k, x in zip(lin, np.asarray(sol.aux))}  # at the answer
-    return vals, status, ok, sol.steps, 2.0 * sol.loss
+    return vals, status, ok, sol.steps, 2.0 * sol.loss, _linearised(stepper, sol, free,
+                                                                 params, vals, lin, steps)
+
+
+def _linearised(stepper, sol, free, params, vals, lin, steps):
+    """A function giving (J, r) at the answer in physical units from the solver's last
+    linearisation (no Jacobian program compiled or run), where it holds every free
+    parameter's column: not where flux and background were taken in closed form, nor
+    where a bounded parameter ended on its bound (its map's slope 0 there); else None."""
+    if lin:
+        return None
+    slope = []
+    for k, p in zip(free, params):
+        if p.bounds is None:
+            slope.append(float(steps[k][1]))
+        else:
+            lo, hi = p.bounds
+            slope.append((vals[k] - lo) * (hi - vals[k]) / (hi - lo) if hi > lo else 0.0)
+    if not all(abs(d) > 1e-12 for d in slope):
+        return None
+
+    def jac_r():
+        j, r = stepper.linearisation(sol)
+        return j / np.asarray(slope)[None, :], r
+
+    return jac_r
 
 
 def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
@@ -424,13 +450,19 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
     jac, (r, m) = jacobian(x0, args)
     return np.asarray(jac), np.asarray(r), [np.asarray(mi) for mi in m]
 
-def _errors(model: ImageModel, data, values: Mapping[str, float], target=None):
+def _errors(model: ImageModel, data, values: Mapping[str, float], target=None, *,
+            linearised=None):
     """Gauss–Newton covariance in the physical parameters at ``values``, scaled by
-    χ²/dof when that exceeds 1 (always, for spike profiles: their σ are relative)."""
+    χ²/dof when that exceeds 1 (always, for spike profiles: their σ are relative).
+    ``linearised``: the solve's (:func:`_one_fit`), whose Jacobian then serves (the
+    model images are then None)."""
     if target is None:
         target = [_PixelTarget(d) for d in _as_list(data)]
     free = model.free
-    jac, r, m = _jacobian(model, data, values, target)
+    if linearised is not None:
+        (jac, r), m = linearised(), None
+    else:
+        jac, r, m = _jacobian(model, data, values, target)
     chi2 = float(r @ r)
     dof = sum(t.n for t in _as_list(target)) - len(free)
     kinds = {t.kind for t in _as_list(target)}
