@@ -39,7 +39,7 @@ TRUE = {"x0": 0.31, "y0": -0.22, "rotation": 4.0, "flux": 1000.0, "background": 
 
 def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n=1024,
                 radius=0.425, obstruction=0.16, strut_width=0.06, z4=0.0, z11=0.0,
-                disc=0.0, blades=0, lam=LAM):
+                disc=0.0, blades=0, lam=LAM, pixel_scale=P, blur=0.0):
     """Fraction of power per data pixel by a NumPy FFT of a pupil raster (y up), then
     ``flux`` × that + ``background``. Independent of difstar's engine. ``z4``: Noll
     defocus (m RMS over the radius 1.1 ``radius``, the circle builder's max_radius),
@@ -49,7 +49,10 @@ def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n
     the source is a uniform disc of that radius (data pixels), convolved on the fine
     grid with an 8 × 8 anti-aliased raster of it before the pixels integrate.
     ``blades`` > 0: instead of the obstructed circle, a regular polygon of that many
-    sides and circumradius ``radius``, its first vertex at ``rotation`` degrees from +x."""
+    sides and circumradius ``radius``, its first vertex at ``rotation`` degrees from +x.
+    ``pixel_scale``: arcsec per data pixel. ``blur``: a Gaussian of that σ (data pixels)
+    on the fine grid before the pixels integrate (a detector's jitter)."""
+    P = pixel_scale  # noqa: N806 - the module's P, overridden
     delta = P * ARCSEC / fine  # rad per fine sample
     dx = lam / (n * delta)  # pupil sample (m)
     half = int(math.ceil(1.05 * radius / dx))
@@ -90,6 +93,10 @@ def _numpy_star(shape=(19, 19), *, x0, y0, rotation, flux, background, fine=4, n
         kern[:2 * m + 1, :2 * m + 1] = k / k.sum()
         kern = np.roll(kern, (-m, -m), axis=(0, 1))
         inten = np.real(np.fft.ifft2(np.fft.fft2(inten) * np.fft.fft2(kern)))
+    if blur:
+        f = np.fft.fftfreq(n)
+        g = np.exp(-2 * math.pi**2 * (blur * fine) ** 2 * (f[:, None] ** 2 + f[None, :] ** 2))
+        inten = np.real(np.fft.ifft2(np.fft.fft2(inten) * g))
     h, w = shape
     ky = n // 2 + fine * (np.arange(h) - h // 2)
     kx = n // 2 + fine * (np.arange(w) - w // 2)

@@ -118,3 +118,22 @@ def test_a_fit_that_holds_the_optics_ends_where_the_engines_path_ends(monkeypatc
         assert abs(cen.values[k] - eng.values[k]) < 0.1 * eng.errors[k], k
     assert abs(cen.values["x0"] - TRUE["x0"]) < 0.01
     assert abs(cen.values["y0"] - TRUE["y0"]) < 0.01
+
+
+@pytest.mark.parametrize("pixel_scale,blur", [(1.0, 1.0), (1.0, 0.5), (1.5, 0.7),
+                                              (0.2, 0.6)])
+def test_blurs_of_undersampled_data_against_the_independent_star(pixel_scale, blur):
+    """Data whose pixels undersample the intensity (1.0″ and 1.5″ pixels: bandwidth
+    1.1–1.7 cycles a pixel) with a detector's Gaussian blur: the NumPy generator blurs
+    its fine grid before its pixels integrate. The model's image (point samples q times
+    finer, pixels and blurs in their spectrum) and the centred path both meet it to
+    1e-2 of the peak; blurring the pixel-integrated samples instead, as difstar did
+    before, missed by 6–12e-2 (a sampled 0.2″ case, q = 1, for contrast)."""
+    truth = _numpy_star((25, 25), **TRUE, pixel_scale=pixel_scale, blur=blur)
+    m = _model(pixel_scale=Param(pixel_scale))
+    assert (fine_factor(m) > 1) == (pixel_scale > 0.5)
+    direct, cen = _both(m, TRUE | {"jitter": blur}, truth.shape)
+    peak = truth.max()
+    assert np.abs(direct - truth).max() < 1e-2 * peak
+    assert np.abs(cen - truth).max() < 1e-2 * peak
+    assert np.abs(cen - direct).max() < 1e-3 * peak

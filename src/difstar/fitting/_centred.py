@@ -84,18 +84,36 @@ def image_from_centred(model, v: Mapping[str, Any], shape, centred, q: int,
     pixel's square integrated, the detector's blurs applied, all in the spectrum; then
     the sample at each data pixel's centre, read out as :meth:`ImageModel.image` does.
     Traceable in the values."""
-    hp, wp = model.padded_shape(shape)
+    img = pixels_from_fine(model, v, model.padded_shape(shape), centred, q, move=True)
+    return model.read_out(img, v, shape, exposure)
+
+
+def pixels_from_fine(model, v: Mapping[str, Any], padded, fine, q: int, *,
+                     move: bool = False):
+    """The padded window's data pixels (``padded``) from ``fine``, the intensity's point
+    samples q times finer a side (× q²): each data pixel's square integrated (its
+    transform, a sinc), the detector's blurs applied and, with ``move``, the star moved
+    by (``x0``, ``y0``) data pixels, all in the spectrum; then the sample at each data
+    pixel's centre, and what acts on the data's pixels themselves (a resampling kernel,
+    a source image). Exact where ``fine`` samples the intensity above its Nyquist rate,
+    the window taken as periodic."""
+    hp, wp = padded
     fy = np.fft.fftfreq(hp * q)[:, None] * q  # cycles per data pixel
     fx = np.fft.rfftfreq(wp * q)[None, :] * q
-    box = jnp.asarray(np.sinc(fx) * np.sinc(fy))
-    ramp = jnp.exp(-2j * math.pi * (fx * v["x0"] + fy * v["y0"]))
-    kern = model.detector_kernel(v, (hp, wp), q) * box * ramp
-    img = jnp.fft.irfft2(jnp.fft.rfft2(centred) * kern, s=(hp * q, wp * q))
+    kern = model.detector_kernel(v, (hp, wp), q, data_grid=q == 1) * jnp.asarray(
+        np.sinc(fx) * np.sinc(fy))
+    if move:
+        kern = kern * jnp.exp(-2j * math.pi * (fx * v["x0"] + fy * v["y0"]))
+    img = jnp.fft.irfft2(jnp.fft.rfft2(fine) * kern, s=(hp * q, wp * q))
     # data pixel k's centre is fine sample k q + c (the axis: data pixel hp // 2, fine
     # sample hp q // 2)
     cy, cx = (hp * q) // 2 - (hp // 2) * q, (wp * q) // 2 - (wp // 2) * q
-    return model.read_out(img[cy::q, cx::q][:hp, :wp], v, shape, exposure)
+    img = img[cy::q, cx::q][:hp, :wp]
+    if q > 1 and model.has_data_grid_kernel:
+        img = jnp.fft.irfft2(jnp.fft.rfft2(img) * model.data_grid_kernel((hp, wp)),
+                             s=(hp, wp))
+    return img
 
 
 __all__ = ["AFTER_OPTICS", "centred_psf", "fine_factor", "image_from_centred",
-           "optics_fixed"]
+           "optics_fixed", "pixels_from_fine"]

@@ -17,6 +17,7 @@ from .._psf import plan_psf, psf
 from .._pupil import distorted
 from .._sensor import response_curve
 from .._zernike import Zernike
+from ._centred import fine_factor, pixels_from_fine
 from ._params import _PITCH, ARCSEC, FitInputError, _as_param
 from ._parts import Light, PupilBuilder
 
@@ -383,9 +384,13 @@ class ImageModel:
                                          for b in [p.value, *(p.bounds or ())]])
         tilt = shift * self._bound("pixel_scale", max) * ARCSEC
         wf = _Shifted(Zernike(coeffs, r) if coeffs else None, tilt, tilt)
+        # where the data's pixels undersample the intensity, point samples q times finer
+        # (the pixels and the blurs then act exactly: :meth:`image`)
+        q = fine_factor(self, light)
         plan = plan_psf(pupil,
-                        wavelength=np.asarray(light.wavelengths),
-                        z_image=z, pixel_pitch=_PITCH, shape=tuple(shape), sampling="pixel",
+                        wavelength=np.asarray(light.wavelengths), z_image=z,
+                        pixel_pitch=_PITCH / q, shape=(shape[0] * q, shape[1] * q),
+                        sampling="point" if q > 1 else "pixel",
                         accuracy=self.accuracy, wavefront=wf, max_radius=r)
         self._plans[key] = plan
         return plan
@@ -434,28 +439,33 @@ class ImageModel:
         pupil = self._pupil_at(v)
         lam = np.asarray(light.wavelengths)
         wts = np.asarray(light.weights)
-        img = psf(pupil, wavelength=lam, weights=wts, z_image=z, pixel_pitch=_PITCH,
-                  shape=(hp, wp), plan=plan, wavefront=wf)
+        q = fine_factor(self, light)
+        grid = dict(wavelength=lam, weights=wts, z_image=z, pixel_pitch=_PITCH / q,
+                    shape=(hp * q, wp * q))
+        img = psf(pupil, plan=plan, wavefront=wf, **grid)
         if self.has_incoherent:
             # random phasing errors of RMS φ between segments: the mean image is
             # e^(−φ²) × the whole pupil's + (1 − e^(−φ²)) × the sum of the segments' own
             # patterns, each the one segment's shifted in the pupil (the same image)
-            seg = psf(self._oriented(self.pupil.segment(v), v), wavelength=lam,
-                      weights=wts, z_image=z, pixel_pitch=_PITCH, shape=(hp, wp),
+            seg = psf(self._oriented(self.pupil.segment(v), v),
                       plan=self.plan((hp, wp), light, segment=True),
-                      wavefront=_Shifted(None, tx, ty))
+                      wavefront=_Shifted(None, tx, ty), **grid)
             img = (1.0 - v["incoherent"]) * img + v["incoherent"] * seg
-        # detector: native pixel box (oversampled data) and Gaussian blur, by FFT
-        kern = self.detector_kernel(v, (hp, wp))
-        img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
+        if q > 1:  # the data undersample the intensity: pixels and blurs in its spectrum
+            img = pixels_from_fine(self, v, (hp, wp), img * (q * q), q)
+        else:  # pixel-integrated samples of a band-limited image: blurs on them exact
+            kern = self.detector_kernel(v, (hp, wp))
+            img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
         return self.read_out(img, v, shape, exposure)
 
-    def detector_kernel(self, v: Mapping[str, Any], padded: tuple[int, int], q: int = 1):
+    def detector_kernel(self, v: Mapping[str, Any], padded: tuple[int, int], q: int = 1,
+                        *, data_grid: bool = True):
         """The transfer function of what acts on the image after the optics, on the
         half spectrum (``rfft2``) of the ``padded`` window sampled ``q`` times a data
         pixel a side: the jitter's and the halos' Gaussians, a native pixel's box
-        (oversampled data), the co-add's resampling kernel and the source's disc or
-        image (its image only at q = 1)."""
+        (oversampled data), the source's disc, and with ``data_grid`` what is defined
+        on the data's pixels (the co-add's resampling kernel, a source image; q = 1
+        only)."""
         hp, wp = padded
         fy = np.fft.fftfreq(hp * q)[:, None] * q  # cycles per data pixel
         fx = np.fft.rfftfreq(wp * q)[None, :] * q
@@ -467,17 +477,35 @@ class ImageModel:
         o = self.oversample
         if o != 1.0:
             kern = kern * jnp.asarray(np.sinc(o * fx) * np.sinc(o * fy))
-        if self.resampling:
-            a = self.resampling
-            kern = kern * jnp.asarray(lanczos_transfer(fx, a) * lanczos_transfer(fy, a))
         if isinstance(self.source, str) and self.source == "disc":
             kern = kern * disc_transform(2 * math.pi * np.sqrt(f2) * v["source_radius"])
-        elif not isinstance(self.source, str):
+        if data_grid and self.has_data_grid_kernel:
             if q != 1:
-                raise ValueError("detector_kernel: a source image is defined on the data's "
-                                 "pixels (q = 1 only).")
-            kern = kern * self._source_spectrum((hp, wp))
+                raise ValueError("detector_kernel: the resampling kernel and a source image "
+                                 "are defined on the data's pixels (q = 1 only).")
+            kern = kern * self.data_grid_kernel((hp, wp))
         return kern
+
+    @property
+    def has_data_grid_kernel(self) -> bool:
+        """Whether something acts on the data's pixels themselves after they sample the
+        image: the co-add's resampling kernel, or a source image."""
+        return bool(self.resampling) or not isinstance(self.source, str)
+
+    def data_grid_kernel(self, padded: tuple[int, int]):
+        """The transfer function, on the half spectrum of the ``padded`` window of data
+        pixels, of what acts on those pixels themselves: the co-add's resampling kernel
+        and a source image (1 where neither is modelled)."""
+        hp, wp = padded
+        fy = np.fft.fftfreq(hp)[:, None]
+        fx = np.fft.rfftfreq(wp)[None, :]
+        kern = np.ones((hp, wp // 2 + 1))
+        if self.resampling:
+            a = self.resampling
+            kern = kern * lanczos_transfer(fx, a) * lanczos_transfer(fy, a)
+        if not isinstance(self.source, str):
+            kern = kern * self._source_spectrum((hp, wp))
+        return jnp.asarray(kern)
 
     def read_out(self, img, v: Mapping[str, Any], shape, exposure: float = 1.0):
         """The data window (``shape``) of the padded image ``img`` (the PSF after the
