@@ -584,8 +584,19 @@ def test_a_model_not_finite_at_the_start_is_named(monkeypatch):
     from difstar.fitting import ImageModel, fit
 
     model, data = _api_case()
+    # the last step of every path to the model's image (the PSF engine's, and one PSF
+    # at the star's centre moved in its spectrum)
+    read_out = ImageModel.read_out
+    monkeypatch.setattr(ImageModel, "read_out",
+                        lambda self, *a, **k: read_out(self, *a, **k) * jnp.nan)
+    with pytest.raises(FitInputError, match="not finite at the start; check the units"):
+        fit(model, data, stages=[{"free": ["x0", "flux"], "max_steps": 5}])
+    # a model that turns non-finite only where the solver did not look (its stage held
+    # the optics and solved on one PSF; the standard errors need the whole model): named,
+    # not a linear-algebra traceback
+    monkeypatch.setattr(ImageModel, "read_out", read_out)
     image = ImageModel.image
     monkeypatch.setattr(ImageModel, "image",
                         lambda self, *a, **k: image(self, *a, **k) * jnp.nan)
-    with pytest.raises(FitInputError, match="not finite at the start; check the units"):
+    with pytest.raises(FitInputError, match="not finite at the answer; check the units"):
         fit(model, data, stages=[{"free": ["x0", "flux"], "max_steps": 5}])

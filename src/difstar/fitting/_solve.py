@@ -463,6 +463,10 @@ def _errors(model: ImageModel, data, values: Mapping[str, float], target=None, *
         (jac, r), m = linearised(), None
     else:
         jac, r, m = _jacobian(model, data, values, target)
+    if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(r))):
+        raise FitInputError("fit: the model or its derivatives are not finite at the "
+                            "answer; check the units (wavelength in metres, pixel_scale "
+                            "in arcsec, Zernike in nm) and the bounds.")
     chi2 = float(r @ r)
     dof = sum(t.n for t in _as_list(target)) - len(free)
     kinds = {t.kind for t in _as_list(target)}
