@@ -582,6 +582,7 @@ def test_a_model_not_finite_at_the_start_is_named(monkeypatch):
     import jax.numpy as jnp
 
     from difstar.fitting import ImageModel, fit
+    from difstar.fitting._programs import release_programs
 
     model, data = _api_case()
     # the last step of every path to the model's image (the PSF engine's, and one PSF
@@ -595,6 +596,7 @@ def test_a_model_not_finite_at_the_start_is_named(monkeypatch):
     # the optics and solved on one PSF; the standard errors need the whole model): named,
     # not a linear-algebra traceback
     monkeypatch.setattr(ImageModel, "read_out", read_out)
+    release_programs()  # the kept programs hold the code they were traced from
     image = ImageModel.image
     monkeypatch.setattr(ImageModel, "image",
                         lambda self, *a, **k: image(self, *a, **k) * jnp.nan)
