@@ -180,8 +180,7 @@ def _residual_fn(model: ImageModel, data, target):
     every call)."""
     datas, targets = _as_list(data), _as_list(target)
     plans = [model.plan(model.padded_shape(d.image.shape), d.light) for d in datas]
-    qs = [fine_factor(model, d.light if d.light is not None else model.light)
-          for d in datas]
+    qs = [fine_factor(model, d.light) for d in datas]
 
     def res(v, arrays=None, psfs=None):
         rs, ms = [], []
@@ -381,25 +380,22 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
     vals = {k: float(x) for k, x in values_of(sol.u, fixed, steps).items()}
     vals |= {k: float(x) for k, x in zip(lin, np.asarray(sol.aux))}  # at the answer
-    return vals, status, ok, sol.steps, 2.0 * sol.loss, _linearised(stepper, sol, free,
-                                                                 params, vals, lin, steps)
+    return vals, status, ok, sol.steps, 2.0 * sol.loss, _linearised(
+        stepper, sol, free, lin, lambda u: values_of(u, fixed, steps))
 
 
-def _linearised(stepper, sol, free, params, vals, lin, steps):
+def _linearised(stepper, sol, free, lin, values_of):
     """A function giving (J, r) at the answer in physical units from the solver's last
     linearisation (no Jacobian program compiled or run), where it holds every free
     parameter's column: not where flux and background were taken in closed form, nor
-    where a bounded parameter ended on its bound (its map's slope 0 there); else None."""
+    where a bounded parameter ended on its bound (its map's slope 0 there); else None.
+    ``values_of``: the solver's map from its vector to the values (each parameter's
+    slope is that map's own derivative)."""
     if lin:
         return None
-    slope = []
-    for k, p in zip(free, params):
-        if p.bounds is None:
-            slope.append(float(steps[k][1]))
-        else:
-            lo, hi = p.bounds
-            slope.append((vals[k] - lo) * (hi - vals[k]) / (hi - lo) if hi > lo else 0.0)
-    if not all(abs(d) > 1e-12 for d in slope):
+    slope = np.diag(np.asarray(jax.jacfwd(
+        lambda u: jnp.stack([values_of(u)[k] for k in free]))(sol.u)))
+    if not np.all(np.abs(slope) > 1e-12):
         return None
 
     def jac_r():
