@@ -152,7 +152,7 @@ def test_the_closed_form_is_bounded_and_sampling_takes_over():
     cam, sc = difstar.paper_camera("focused")
     cam = difstar.Camera(difstar.Lens(many, focal_length=51.5e-3, focus_distance=1.0),
                          cam.sensor)
-    assert difstar.choose_grid(cam, sc, crop=(16, 16)).method == "fft"
+    assert difstar.choose_grid(cam, sc, crop=(16, 16)).psf_plan.method in ("mft", "fft")
     refused(lambda: difstar.choose_grid(cam, sc, crop=(16, 16), method="exact"),
             "method='exact'")
 

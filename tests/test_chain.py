@@ -81,6 +81,8 @@ def test_defocus_switch_and_rules():
     camera, scene, grid = _small("focused")
     assert grid.use_defocus is False  # Δz = 0: no phase computed
     camera, scene, grid = _small("defocused")
+    assert grid.use_defocus is True and grid.psf_plan.use_defocus is True
+    camera, scene, grid = _small("defocused", method="fft")  # the paper's grid: its switch
     assert grid.use_defocus is True
     with pytest.raises(difstar.SamplingError, match="use_defocus is False"):
         difstar.simulate(camera, scene, dataclasses.replace(grid, use_defocus=False))
@@ -181,7 +183,7 @@ def test_paper_example_small_crop_end_to_end():
 def test_exact_path_chosen_in_focus_and_agrees_with_converged_fft():
     camera, scene, grid = _small("focused", crop=(64, 64))
     assert grid.method == "exact"
-    assert _small("defocused")[2].method == "fft"
+    assert _small("defocused")[2].method == "engine"
     exact = np.asarray(sim(camera, scene, grid).image)
     fft_grid = choose_grid(camera, scene, crop=(64, 64), method="fft", padding=12.0)
     ref = np.asarray(sim(camera, scene, fft_grid).image)

@@ -11,6 +11,7 @@ period and point-tested pupil, and at f/22 difstar's PSF sampled at the pixel ce
 where the generator integrates), and the image turned by 180° is 0.15–0.24 off.
 """
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -236,8 +237,8 @@ def test_defocus_exactly_zero_has_finite_gradient():
     scene = _scene()
     grid = choose_grid(camera, scene, crop=(32, 32), accuracy=3e-2)
     assert grid.use_defocus is False  # no phase computed at Δz = 0
-    g_on = difstar.Grid(n=grid.n, oversample=grid.oversample, crop=grid.crop,
-                        use_defocus=True)
+    g_on = dataclasses.replace(  # the same grid with the phase computed (it is 0)
+        grid, use_defocus=True, psf_plan=dataclasses.replace(grid.psf_plan, use_defocus=True))
 
     def loss(dz):
         cam = eqx.tree_at(lambda c: c.lens.defocus, camera, dz)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from . import _pruned
 from ._atf import atf
 from ._cfa import mosaic
 from ._colour import render_srgb
@@ -164,10 +163,6 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     w = grid.source_window
     if 0 < w < n:  # the sources' image on its window
         bw = sources_image(camera, scene, g, (w, w))
-        if _pruned.applies(grid):  # only the work the crop needs; equal to the below
-            psfs, image = _pruned.image(camera.lens.pupil, sen.wavelengths, g, bw,
-                                        pixel_pitch=sen.pixel_pitch, grid=grid)
-            return _finish(camera, scene, grid, g, psfs, image)
         b = jax.lax.dynamic_update_slice(jnp.zeros((3, n, n), bw.dtype), bw,
                                          (0, n // 2 - w // 2, n // 2 - w // 2))
     else:

@@ -90,20 +90,14 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
                         **({"padding": pad} if acc is None else {"accuracy": acc}))
         dz = probe.params.get(f"defocus/{name}")
         use_dz = g.use_defocus or (dz is not None and dz.free)
-        # windows (FFT path: the pupil's ATF and the sources' image computed only where
-        # they are) sized like the grid, plus the source offsets' bounds
+        # the sources' window as the grid sized it, plus the source offsets' bounds
         off = probe.params.get(f"source_offset/{name}")
         reach = 0 if off is None or not off.free else int(np.ceil(np.max(np.abs(
             np.concatenate([off.lo, off.hi])))))
-        src = g.source_window + 2 * reach if g.source_window else 0
-        if g.method == "engine":  # difstar.psf's engine on exactly the crop's offsets
-            grid = Grid(n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz,
-                        raw_only=True, method="engine", source_window=src,
-                        psf_plan=g.psf_plan)
-        else:
-            grid = Grid(n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz,
-                        raw_only=True, method=g.method, pupil_window=g.pupil_window,
-                        source_window=src if src < g.n else 0)
+        # difstar.psf's engine on exactly the crop's offsets (padding: the grid's period)
+        grid = Grid(n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz,
+                    raw_only=True, method="engine", source_window=g.source_window + 2 * reach,
+                    psf_plan=g.psf_plan)
         configs.append(dataclasses.replace(dummy, grid=grid))
     return FitModel(cc, tuple(configs), caps, params)
 

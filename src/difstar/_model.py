@@ -194,6 +194,10 @@ class Grid(eqx.Module):
     (in focus, polygonal pupils only) evaluates the PSF in closed form (Lee & Mittra) on
     exactly the offsets the crop needs and convolves it linearly with the geometric image
     on a ``source_window`` × ``source_window`` window: no grid, no aliasing, no wrap.
+    ``method="engine"`` (what ``choose_grid`` picks for every sampled pupil) does the same
+    with :func:`difstar.psf`'s engine and its ``psf_plan``; ``n`` is then the field's
+    period in pixels where ``choose_grid``'s ``n`` or ``padding`` set it (else the crop's
+    side), and ``oversample`` the odd number of samples a side that integrate each pixel.
 
     On the FFT path a non-zero ``source_window`` (odd, pixels) computes the geometric
     image only on that centred window, and ``pupil_window`` (even, samples of the n·q
@@ -251,16 +255,19 @@ class Grid(eqx.Module):
             raise ValueError(f"Grid.scaling must be one of {SCALINGS}; got {self.scaling!r}.")
 
     def describe(self) -> str:
-        """One line for logs: the path and what sizes it (``n`` is the FFT grid's side
-        only on the fft path)."""
+        """One line for logs: the path and what sizes it (``n``: the FFT grid's side on
+        the fft path, the field's period on the engine's where ``choose_grid``'s ``n``
+        or ``padding`` set it)."""
         if self.method == "exact":
             return (f"exact in-focus path (closed-form PSF, no grid), crop = {self.crop}, "
                     f"source window {self.source_window} px")
         defocus = "on" if self.use_defocus else "off (Δz negligible)"
         if self.method == "engine":
             q = self.oversample
-            return (f"PSF engine ({self.psf_plan.method}), {q} × {q} samples per pixel, "
-                    f"crop = {self.crop}, defocus phase {defocus}")
+            # n beyond the crop: the field's period the caller set (n or padding)
+            period = f", period n = {self.n} px" if self.n > max(self.crop) else ""
+            return (f"PSF engine ({self.psf_plan.method}{period}), {q} × {q} samples per "
+                    f"pixel, crop = {self.crop}, defocus phase {defocus}")
         return (f"FFT grid n = {self.n}, oversample = {self.oversample}, crop = {self.crop}, "
                 f"defocus phase {defocus}")
 

@@ -86,10 +86,12 @@ def plan_psf(
 
 
 def _plan(pupil, *, wavelength, z_image, defocus, pixel_pitch, shape, sampling, accuracy,
-          wavefront, scaling, method, max_radius, n_eval: int) -> PSFPlan:
+          wavefront, scaling, method, max_radius, n_eval: int,
+          period: float | None = None) -> PSFPlan:
     """:func:`plan_psf` for ``n_eval`` wavelengths evaluated per call (its memory
     estimate), after the counts were checked (``choose_grid`` plans one engine grid for
-    every channel's wavelengths, each channel a call of its own)."""
+    every channel's wavelengths, each channel a call of its own; ``period``: its grid's,
+    where ``n`` or ``padding`` set it)."""
     from ._pupil import Polygon, RegularPolygon
     from ._validate import MAX_EXACT_EDGES, InputError, check_pupil_cost
 
@@ -131,7 +133,7 @@ def _plan(pupil, *, wavelength, z_image, defocus, pixel_pitch, shape, sampling, 
     plan = plan_window(pupil_radius=r, wavelengths=lams.ravel(), z_image=z_r, defocus=dz,
                        pixel_pitch=p, shape=(h, w), sampling=sampling, accuracy=acc,
                        exact_ok=exact_ok, wavefront_slope=slope, scaling=scaling,
-                       method=method)
+                       method=method, period=period)
     _check_cost(plan, (h, w), acc, p)
     check_memory_of(plan, (h, w), n_lam, edges, p)
     return plan
@@ -202,7 +204,9 @@ def psf_bytes(plan: PSFPlan, shape, n_wavelengths: int, edges: int, pixel_pitch:
     if plan.method == "mft":
         return need + pts * c + m * (h + w) * nodes * c + m * min(h, w) * nodes * c
     n = max(1, round(plan.period / pixel_pitch))
-    return need + m * n * c + nodes * m * w * c + w * n * c + pts * r
+    # the first pass holds every column node's (m, n) transform, the second one row
+    # node's over every column node (W, n)
+    return need + nodes * m * n * c + nodes * m * w * c + nodes * w * n * c + pts * r
 
 
 def check_memory_of(plan: PSFPlan, shape, n_wavelengths: int, edges: int,

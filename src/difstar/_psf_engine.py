@@ -39,6 +39,7 @@ import math
 from functools import cache
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -143,12 +144,16 @@ def plan_psf(
     wavefront_slope: float = 0.0,
     scaling: str = "fresnel",
     method: str | None = None,
+    period: float | None = None,
 ) -> PSFPlan:
     """The plan for a window (concrete numbers; see the module's docstring).
 
     ``exact_ok``: the pupil is a polygon and there is no wavefront error.
     ``wavefront_slope``: the largest slope |∇OPD| of the wavefront error over the pupil
     (metres per metre; 0 without one), for the sub-cell rule.
+    ``period``: L chosen by the caller (metres; a whole number of pixels for "fft"), in
+    place of the guard rule's: ``choose_grid``'s ``n`` or ``padding``, the grid the
+    paper's method transforms. The sub-cells still follow the accuracy.
     """
     lams = [float(v) for v in np.atleast_1d(np.asarray(wavelengths, float))]
     lam_min = min(lams)
@@ -175,16 +180,20 @@ def plan_psf(
     # period: the window, the geometric blur and the guard against the copies
     extent = max(h, w) * p
     blur = 2 * r * abs(dz) / abs(z_r - dz) if use_defocus else 0.0
-    period = extent * (1 + _guard(accuracy)) + blur
-    scale_max = max(float(pupil_scale(lam, z_r, dz, scaling)) for lam in lams)
-    # enough samples across the pupil at the longest wavelength (its fewest)
-    period = max(period, _MIN_PUPIL_SAMPLES * scale_max / (2 * r))
+    given = period is not None
+    if not given:
+        period = extent * (1 + _guard(accuracy)) + blur
+        scale_max = max(float(pupil_scale(lam, z_r, dz, scaling)) for lam in lams)
+        # enough samples across the pupil at the longest wavelength (its fewest)
+        period = max(period, _MIN_PUPIL_SAMPLES * scale_max / (2 * r))
+    elif not (math.isfinite(period) and period > 0):
+        raise ValueError(f"plan_psf: period must be a finite length > 0; got {period!r}.")
     m = math.ceil(2 * r * period / scale_min) + 4
     m += m % 2
     if method is None:
         method = "fft" if _fft_cost(m, h, w, nodes, period / p) < _mft_cost(m, h, w, nodes) \
             else "mft"
-    if method == "fft":
+    if method == "fft" and not given:
         from ._fft_size import fast_length
 
         period = fast_length(math.ceil(period / p)) * p  # a whole number of pixels
@@ -358,25 +367,25 @@ def fft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, s
     amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
     f = _cell_centres(m, df)
     xg = _node_positions(plan.nodes)
+    k = len(xg)
     ic = (np.arange(w) - w // 2) % n  # column k at x = (k − W//2) p
     ir = (-(np.arange(h) - h // 2)) % n  # row k at y = −(k − H//2) p
-    # first pass once per column node (the pupil's rows, keeping the window's columns),
-    # second pass per row node over those columns, keeping the window's rows
-    firsts = []
-    for b in xg:  # column nodes: x offset b p
-        ramp_x = jnp.exp(2j * math.pi * f * (b * pixel_pitch))
-        firsts.append(jnp.fft.ifft(_fold(amp * ramp_x[None, :], n), n=n, axis=1)[:, ic] * n)
-    rows = []
-    for a in xg:  # row nodes: y offset −a p
+    # first pass, all column nodes at once (x offset b p: a phase ramp on the pupil's
+    # rows), keeping the window's columns: (k, m, W)
+    ramp_x = jnp.exp(2j * math.pi * jnp.asarray(xg)[:, None] * pixel_pitch * f[None, :])
+    firsts = jnp.fft.ifft(_fold(amp[None] * ramp_x[:, None, :], n), n=n, axis=-1)[..., ic] * n
+    firsts_t = jnp.swapaxes(firsts, -1, -2)  # (k, W, m)
+
+    def second(a):  # one row node (y offset −a p) over every column node: (k, W, H)
         ramp_y = jnp.exp(2j * math.pi * f * (-a * pixel_pitch))
-        cols = []
-        for g in firsts:  # (m, W)
-            field_t = jnp.fft.ifft(_fold((g * ramp_y[:, None]).T, n), n=n, axis=1)[:, ir] * n
-            cols.append(jnp.real(field_t) ** 2 + jnp.imag(field_t) ** 2)  # (W, H)
-        rows.append(jnp.stack(cols, axis=-1))  # (W, H, column node)
-    inten = jnp.stack(rows, axis=-1)  # (W, H, column node, row node)
-    # to :func:`_offsets`' layout: (H, row node, W, column node) → (H·m, W·m)
-    inten = inten.transpose(1, 3, 0, 2).reshape(h * len(xg), w * len(xg))
+        field_t = jnp.fft.ifft(_fold(firsts_t * ramp_y, n), n=n, axis=-1)[..., ir] * n
+        return jnp.real(field_t) ** 2 + jnp.imag(field_t) ** 2
+
+    # one row node at a time (lax.map): one program body, the memory of one
+    inten = jax.lax.map(second, jnp.asarray(xg)) if k > 1 else second(xg[0])[None]
+    # (row node, column node, W, H) → :func:`_offsets`' layout (H, row node, W, column
+    # node) → (H·m, W·m)
+    inten = inten.transpose(3, 0, 2, 1).reshape(h * k, w * k)
     return _fraction_of_power(inten, energy, pixel_pitch=pixel_pitch, shape=shape, plan=plan)
 
 

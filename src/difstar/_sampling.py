@@ -79,11 +79,13 @@ def padding_for_accuracy(accuracy: float | None) -> float:
 
 
 def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scaling,
-                 oversample=None) -> Grid:
+                 oversample=None, n: int | None = None) -> Grid:
     """The grid of ``method="engine"``: the PSF through :func:`difstar.psf`'s engine on the
     offsets the crop needs, planned here (outside jit) for every channel's wavelengths,
     at pitch p/q where the pixels undersample the intensity (``oversample`` q, odd,
-    overrides :func:`engine_oversample`'s choice)."""
+    overrides :func:`engine_oversample`'s choice). ``n``: the field's period in pixels
+    (the paper's n × n grid, from ``choose_grid``'s ``n`` or ``padding``) in place of the
+    engine's own rule, transformed by pruned FFTs of length n q."""
     from ._psf import _plan
 
     g = geometry_of(camera, scene)
@@ -106,9 +108,11 @@ def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scal
     plan = _plan(camera.lens.pupil, wavelength=np.ravel(lams), z_image=z_r,
                  defocus=float(g.defocus), pixel_pitch=pitch / q, shape=shape,
                  sampling="point", accuracy=accuracy, wavefront=camera.lens.wavefront,
-                 scaling=scaling, method=None, max_radius=None,
-                 n_eval=lams.shape[-1] if lams.ndim == 2 else 1)
-    grid = Grid(n=max(crop), oversample=q, crop=crop, use_defocus=plan.use_defocus,
+                 scaling=scaling, method=None if n is None else "fft", max_radius=None,
+                 n_eval=lams.shape[-1] if lams.ndim == 2 else 1,
+                 period=None if n is None else n * pitch)
+    grid = Grid(n=max(crop) if n is None else max(n, *crop), oversample=q, crop=crop,
+                use_defocus=plan.use_defocus,
                 raw_only=raw_only, scaling=scaling, method="engine", source_window=window,
                 psf_plan=plan)
     check_cost(camera, grid, where="choose_grid")
@@ -190,16 +194,14 @@ def choose_grid(
     # sub-pixel grid (BENCHMARKS.md, "The chain against an independent camera")
     undersampled = pixel_bandwidth(camera, scene, scaling) > 0.5
     if method is None:
-        if spectral or aberrated or (undersampled and n is None and padding is None
-                                     and oversample is None):
-            method = "engine"
-        else:
-            method = ("exact" if exact_ok and n is None and padding is None and accuracy is None
-                      else "fft")
-    if method == "engine":
+        # the closed form where it applies and nothing asks for a grid; every sampled
+        # pupil through the PSF engine's one planner
+        method = ("exact" if exact_ok and not (spectral or aberrated or undersampled)
+                  and n is None and padding is None and accuracy is None else "engine")
+    if method == "engine" and n is None and padding is None:
         return _engine_grid(camera, scene, crop, accuracy=accuracy, raw_only=raw_only,
                             scaling=scaling, oversample=oversample)
-    if spectral or aberrated:
+    if method == "fft" and (spectral or aberrated):
         raise ValueError(
             f"choose_grid: method={method!r} models one wavelength per channel and no wavefront "
             "error; this camera has a spectral sensor or a lens wavefront: use method='engine' "
@@ -232,8 +234,11 @@ def choose_grid(
             check_sampling(camera, scene, grid)
         check_cost(camera, grid, where="choose_grid")
         return grid
-    if method != "fft":
-        raise ValueError(f"choose_grid: method must be 'exact', 'fft' or None; got {method!r}.")
+    if method not in ("fft", "engine"):
+        raise ValueError(f"choose_grid: method must be 'exact', 'engine', 'fft' or None; got "
+                         f"{method!r}.")
+    # n or padding: the n × n grid's period, for the paper's transform ("fft") or the
+    # engine's pruned one
     if padding is not None and accuracy is not None:
         raise ValueError("choose_grid: give padding or accuracy, not both.")
     if padding is None:
@@ -279,8 +284,14 @@ def choose_grid(
             f"and its blur ({ext['blur_diameter_px']:.4g} px); the image would wrap around. "
             f"Use n >= {need} (a fast size: {fast_length(need)}), or omit n."
         )
-    # model only what the scene needs: the pupil's ATF on the samples the pupil covers
-    # (at the shortest wavelength), the geometric image on the pixels the sources cover
+    if method == "engine":
+        # the grid's period through the PSF engine: pruned FFTs on the offsets the crop
+        # needs, the pupil's sub-cells at the grid's accuracy, and the pixels' own
+        # sub-samples where they undersample the intensity
+        return _engine_grid(camera, scene, crop, raw_only=raw_only, scaling=scaling,
+                            accuracy=DEFAULT_ACCURACY if accuracy is None else accuracy,
+                            oversample=oversample, n=int(n))
+    # the paper's method: the whole n × n grid, transformed twice per channel
     g = geometry_of(camera, scene)
     lam_min = float(jnp.min(camera.sensor.wavelengths))
     m = pupil_window_for(float(camera.lens.pupil.max_radius()), lam_min,

@@ -7,8 +7,7 @@ The chain, in the order data flows: the geometric image of the sources
 PSF on the grid (:func:`channel_psf`), its OTF (:func:`otf`), their product back to an
 image (:func:`convolve`) cut to the capture (:func:`crop`); the sensor's response
 (:func:`sensor`), the colour filter mosaic (:func:`mosaic`) and the rendering to sRGB
-(:func:`render_srgb`). ``pruned_applies`` / ``pruned_image``: the same numbers as the
-grid path for the parts of the frame a crop needs, when the grid allows it.
+(:func:`render_srgb`).
 """
 
 from ._atf import defocus_phase_coefficient as defocus_phase_coefficient
@@ -24,8 +23,6 @@ from ._image import image_spectrum as image_spectrum
 from ._mft import conv_size as conv_size
 from ._mft import window_rfft2 as window_rfft2
 from ._otf import otf as otf
-from ._pruned import applies as pruned_applies
-from ._pruned import image as pruned_image
 from ._sampling import DEFAULT_ACCURACY as DEFAULT_ACCURACY
 from ._sampling import choose_grid as choose_grid
 from ._sampling import padding_for_accuracy as padding_for_accuracy
@@ -35,6 +32,6 @@ from ._sensor import sensor as sensor
 __all__ = [
     "DEFAULT_ACCURACY", "channel_psf", "choose_grid", "conv_size", "convolve", "crop",
     "defocus_phase_coefficient", "fast_length", "geometric_image", "geometry_of",
-    "image_spectrum", "mosaic", "otf", "padding_for_accuracy", "pruned_applies",
-    "pruned_image", "render_srgb", "scene_extent", "sensor", "window_rfft2",
+    "image_spectrum", "mosaic", "otf", "padding_for_accuracy",
+    "render_srgb", "scene_extent", "sensor", "window_rfft2",
 ]

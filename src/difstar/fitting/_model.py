@@ -156,6 +156,10 @@ def image_distortion(shear, aspect):
 #: The Zernike terms' margin in a fit's PSF plan: a stage plans for 1.5 × its start's
 #: values, and solves again from its answer where that needs a finer plan.
 PLAN_MARGIN = 1.5
+#: A free Zernike term is planned for at least this fraction of its bounds' reach: a
+#: solve moves it away from a start at zero, and a plan made for zero then needs a
+#: second plan, program and solve (the Spitzer fit's last stage: one more compile).
+PLAN_HEADROOM = 0.1
 
 class ImageModel:
     """A star image: pupil builder, wavefront (Zernike Noll indices), light, detector.
@@ -351,20 +355,21 @@ class ImageModel:
         return (int(shape[0]) + 2 * self.pad, int(shape[1]) + 2 * self.pad)
 
     def plan(self, shape, light: Light | None = None, *, segment: bool = False,
-             margin: float = PLAN_MARGIN):
+             margin: float = PLAN_MARGIN, headroom: float = PLAN_HEADROOM):
         """The PSF plan for an output window ``shape`` (data pixels, padding included) and
         ``light`` (default: the model's), made once (cached) with the largest angular
         scale and star shift the bounds allow and the Zernike terms at ``margin`` × the
-        model's values (a fit checks with :meth:`plan_holds` that its answer stays within
-        them). ``segment``: the plan of one segment's pattern (the incoherent part; tilt
-        only, no Zernike terms), which the whole pupil's plan makes and caches as well, so
-        that :meth:`image` finds it inside a trace."""
+        model's values, a free term at least at ``headroom`` × its bounds' reach (a fit
+        checks with :meth:`plan_holds` that its answer stays within them). ``segment``:
+        the plan of one segment's pattern (the incoherent part; tilt only, no Zernike
+        terms), which the whole pupil's plan makes and caches as well, so that
+        :meth:`image` finds it inside a trace."""
         light = self.light if light is None else light
         # the Zernike terms (the whole pupil's only) at margin × their values: their
         # slope sets the pupil's sub-cells, whose number grows with it (planning for the
         # bounds' extremes made the Spitzer fit's pupil 5× finer than its answer needs)
         coeffs = {} if segment else {
-            j: 1e-9 * margin * abs(self.params[f"z{j}"].value) for j in self.zernike}
+            j: 1e-9 * margin * self._planned_size(f"z{j}", headroom) for j in self.zernike}
         coeffs = {j: c for j, c in coeffs.items() if c > 0}
         key = (tuple(shape), tuple(light.wavelengths), segment, tuple(sorted(coeffs.items())))
         if key in self._plans:
@@ -395,13 +400,22 @@ class ImageModel:
         self._plans[key] = plan
         return plan
 
+    def _planned_size(self, name: str, headroom: float) -> float:
+        """|value| of a Zernike term, or for a free one at least ``headroom`` × the
+        largest |bound| (nm)."""
+        p = self.params[name]
+        size = abs(float(p.value))
+        if p.free and p.bounds is not None and headroom > 0:
+            size = max(size, headroom * max(abs(float(b)) for b in p.bounds))
+        return size
+
     def plan_holds(self, values: Mapping[str, float], shape,
                    light: Light | None = None) -> bool:
         """Whether the plan this model made for ``shape`` and ``light`` (:meth:`plan`, at
         its own values) is fine enough for ``values`` too: the plan ``values`` need
-        (margin 1) asks no more sub-cells of the pupil and is otherwise the same."""
+        (margin 1, no headroom) asks no more sub-cells of the pupil and is otherwise the same."""
         used = self.plan(shape, light)
-        need = self.with_values(values).plan(shape, light, margin=1.0)
+        need = self.with_values(values).plan(shape, light, margin=1.0, headroom=0.0)
         same = (used.method, used.nodes, used.period, used.pupil_window, used.use_defocus) \
             == (need.method, need.nodes, need.period, need.pupil_window, need.use_defocus)
         return same and used.subcells >= need.subcells
