@@ -16,10 +16,16 @@ only *calls* the core. What it measures, for the paper's focused and defocused s
   polygon transform (Lee & Mittra 1983).
 
 References. Focused: the exact polygon transform of the pupil, linearly convolved with
-the geometric image (no grid, no wrap: an independent truth). Defocused: difstar in
-float64 on a much larger grid (``REF_PADDING``); its convergence is shown by pushing the
-padding further and reporting the change, and by the same reference's agreement with the
-exact one in focus.
+the geometric image (no grid, no wrap: an independent truth). Defocused: the PSF engine
+(checked against quadrature and the exact transform in ``tests/test_psf_truths.py``) in
+float64 at accuracy 1e-4, its field's period a much larger grid (``REF_PADDING``),
+convolved linearly with the exact source coverage; its convergence is shown by pushing
+the period further and reporting the change, and by the same reference's agreement with
+the exact one in focus.
+
+Rows: the paper's method in NumPy; difstar's default (``choose_grid``: the closed form in
+focus, the PSF engine otherwise) and the engine at a tighter accuracy; and the paper's
+own n × n grid in difstar (``method="fft"``) at its default padding and others.
 """
 
 from __future__ import annotations
@@ -39,7 +45,9 @@ import numpy as np
 
 CORE_MARGIN_PX = 20.0
 REF_PADDING = (3.0, 5.0)  # reference and its convergence check (defocused scene)
+REF_ACCURACY = 1e-4  # the reference's PSF engine (its sub-cells)
 BASELINE_N = 3750
+ENGINE_TIGHT = 1e-4  # the engine's tighter row (defocused)
 
 
 def _log(msg: str) -> None:
@@ -154,43 +162,22 @@ def exact_focused_image(camera, scene, crop: tuple[int, int]) -> np.ndarray:
 
 
 def difstar_reference(camera, scene, crop: tuple[int, int], padding: float) -> np.ndarray:
-    """difstar's linear image (3, h, w) on a large grid, one channel at a time (memory).
-    Run in float64 (the ``reference`` subcommand of this module sets JAX_ENABLE_X64)."""
+    """difstar's linear image (3, h, w) through the PSF engine (verified against
+    quadrature: ``tests/test_psf_truths.py``) at accuracy ``REF_ACCURACY``, its field's
+    period the n × n grid of ``padding``, convolved linearly with the exact source
+    coverage. Run in float64 (the ``reference`` subcommand of this module sets
+    JAX_ENABLE_X64)."""
+    import equinox as eqx
     import jax
 
-    from difstar.stages import (
-        channel_psf,
-        choose_grid,
-        convolve,
-        geometric_image,
-        geometry_of,
-        image_spectrum,
-        otf,
-        pruned_applies,
-        pruned_image,
-    )
-    from difstar.stages import crop as _crop
+    import difstar
+    from difstar.stages import choose_grid
 
-    grid = choose_grid(camera, scene, crop=crop, padding=padding, raw_only=True)
-    g = geometry_of(camera, scene)
-    n = grid.n
-    p = camera.sensor.pixel_pitch
-    if pruned_applies(grid):  # the same numbers as below, far less memory and time
-        w = grid.source_window
-        bw = geometric_image(scene.sources, magnification=g.magnification, pixel_pitch=p,
-                             shape=(w, w))
-        return np.asarray(jax.jit(lambda bw: pruned_image(
-            camera.lens.pupil, camera.sensor.wavelengths, g, bw, pixel_pitch=p,
-            grid=grid)[1])(bw))
-    b_ft = image_spectrum(geometric_image(scene.sources, magnification=g.magnification,
-                                          pixel_pitch=p, shape=(n, n)))
-
-    @jax.jit
-    def one(lam, bft):
-        psf = channel_psf(camera.lens.pupil, lam, g, pixel_pitch=p, grid=grid)
-        return _crop(convolve(bft, otf(psf), (n, n)), crop)
-
-    return np.stack([np.asarray(one(camera.sensor.wavelengths[c], b_ft[c])) for c in range(3)])
+    n = choose_grid(camera, scene, crop=crop, padding=padding, method="fft").n
+    grid = choose_grid(camera, scene, crop=crop, n=n, accuracy=REF_ACCURACY, raw_only=True,
+                       method="engine")
+    return np.asarray(jax.block_until_ready(
+        eqx.filter_jit(difstar.simulate)(camera, scene, grid).image))
 
 
 def reference_images(config: str, crop, source_radius, paddings, cache: Path | None):
@@ -295,11 +282,18 @@ def _mem(compiled) -> int:
         return -1
 
 
+def camera_pitch(grid) -> float:
+    """The sensor's pixel pitch of the paper's camera (the grid does not hold it)."""
+    import difstar
+
+    return float(difstar.paper_camera("focused")[0].sensor.pixel_pitch)
+
+
 def fft_floor(grid, dtype, repeats: int = 3) -> float:
     """Seconds for exactly the FFTs ``simulate`` does on ``grid``. Full FFT path: per
     channel one complex (nq)² inverse FFT (the field), one real n² FFT (the OTF) and one
     real inverse FFT (the image), plus the real FFT of the three-channel geometric image.
-    Pruned path (``_pruned``) and exact path: the transforms they do instead."""
+    The PSF engine's path and the exact path: the transforms they do instead."""
     import jax
     import jax.numpy as jnp
 
@@ -319,31 +313,30 @@ def fft_floor(grid, dtype, repeats: int = 3) -> float:
 
         jax.block_until_ready(conv(p))
         return _best(lambda: conv(p), repeats)
-    from difstar.stages import pruned_applies
-
-    if pruned_applies(grid):
-        # the pruned chain's FFTs: per channel the field's first pass over the pupil
-        # window's columns, its second pass over the rows the crop needs, and the linear
-        # convolution (real FFTs of a fast size ≥ crop + source window − 1)
+    if grid.method == "engine":
+        # the PSF engine's pruned FFTs, per channel: the field's first pass over the
+        # pupil window's rows (length L/p), its second pass over the window's columns,
+        # then the linear convolution (real FFTs of a fast size ≥ window + source − 1)
         from difstar.stages import fast_length
 
-        nf, hb, q = grid.n * grid.oversample, grid.source_window, grid.oversample
-        wp = grid.pupil_window if 0 < grid.pupil_window < nf else nf
-        rows = (grid.crop[0] + hb - 1) * q
-        lh, lw = (fast_length(c + hb - 1) for c in grid.crop)
+        plan, q, hb = grid.psf_plan, grid.oversample, grid.source_window * grid.oversample
+        nf = round(plan.period * q / camera_pitch(grid))
+        wp = plan.pupil_window
+        kh = grid.crop[0] * q + hb - 1  # the PSF's offsets a side
+        lh = fast_length(kh + hb - 1)
         cdt = jnp.result_type(dtype, jnp.complex64)
         a = jax.random.normal(key, (3, wp, wp), dtype).astype(cdt)
-        p = jax.random.normal(key, (3, lh, lw), dtype)
+        p = jax.random.normal(key, (3, lh, lh), dtype)
 
         @jax.jit
-        def pruned(a, p):
-            g = jnp.fft.ifft(a, n=nf, axis=2)[:, :, :rows]  # as _pruned.psf_region lays it out
-            field = jnp.fft.ifft(jnp.swapaxes(g, 1, 2), n=nf, axis=2)[:, :, :rows]
-            spec = jnp.fft.rfft2(p) * jnp.fft.rfft2(p[:, :hb, :hb], s=(lh, lw))
-            return field, jnp.fft.irfft2(spec, s=(lh, lw))
+        def engine(a, p):
+            g = jnp.fft.ifft(a, n=nf, axis=2)[:, :, :kh]
+            field = jnp.fft.ifft(jnp.swapaxes(g, 1, 2), n=nf, axis=2)[:, :, :kh]
+            spec = jnp.fft.rfft2(p) * jnp.fft.rfft2(p[:, :hb, :hb], s=(lh, lh))
+            return field, jnp.fft.irfft2(spec, s=(lh, lh))
 
-        jax.block_until_ready(pruned(a, p))
-        return _best(lambda: pruned(a, p), repeats)
+        jax.block_until_ready(engine(a, p))
+        return _best(lambda: engine(a, p), repeats)
     n, m = grid.n, grid.n * grid.oversample
     cdt = jnp.result_type(dtype, jnp.complex64)
     a = jax.random.normal(key, (3, m, m), dtype).astype(cdt)
@@ -538,7 +531,8 @@ def run(*, quick: bool = False, configs=("focused", "defocused"), accuracies=Non
             ref_info["difstar_f64_vs_exact_lin"] = rel_rms(ref_big, ref, mask)
         else:
             ref = ref_big
-            ref_info["kind"] = f"difstar float64, padding {REF_PADDING[-1]}"
+            ref_info["kind"] = (f"the PSF engine in float64 (accuracy {REF_ACCURACY:g}) on the "
+                                f"period of padding {REF_PADDING[-1]}")
         ref_srgb = render(camera, scene, ref)
         ref_info["difstar_f64_change_srgb_mse"] = float(
             np.mean((render(camera, scene, refs[REF_PADDING[0]]) - ref_srgb) ** 2))
@@ -557,15 +551,23 @@ def run(*, quick: bool = False, configs=("focused", "defocused"), accuracies=Non
 
         camera32 = _to_float32(camera)
         scene32 = _to_float32(scene)
-        settings = [("FFT default" if a == DEFAULT_ACCURACY else f"FFT accuracy={a:g}",
-                     padding_for_accuracy(a), a) for a in accuracies]
-        settings += [(f"FFT padding={pd:g}", pd, None) for pd in paddings]
-        for name, pad, acc in settings:
-            grid = choose_grid(camera, scene, crop=crop, padding=pad, method="fft")
-            _log(f"  difstar {name}: n = {grid.n}, q = {grid.oversample} ...")
+        settings = [("paper's grid (method='fft')" if a == DEFAULT_ACCURACY else
+                     f"paper's grid accuracy={a:g}", padding_for_accuracy(a), a)
+                    for a in accuracies]
+        settings += [(f"paper's grid padding={pd:g}", pd, None) for pd in paddings]
+        grids = [(name, pad, acc, choose_grid(camera, scene, crop=crop, padding=pad,
+                                              method="fft")) for name, pad, acc in settings]
+        if config != "focused" and difstar.needs_defocus(camera, scene):
+            grids = [(f"default (PSF engine{'' if a is None else f', accuracy={a:g}'})",
+                      None, a, choose_grid(camera, scene, crop=crop, accuracy=a))
+                     for a in (None, ENGINE_TIGHT)] + grids
+        for name, pad, acc, grid in grids:
+            n_eff = (round(grid.psf_plan.period / camera.sensor.pixel_pitch)
+                     if grid.method == "engine" else grid.n)
+            _log(f"  difstar {name}: n = {n_eff}, q = {grid.oversample} ...")
             pred, t = time_difstar(camera32, scene32, grid, repeats)
             le, se = errors(np.asarray(pred.image, float))
-            rows.append(Row(config, f"difstar {name}", grid.n, grid.oversample, pad, le, se,
+            rows.append(Row(config, f"difstar {name}", n_eff, grid.oversample, pad, le, se,
                             t.forward_s, t.compile_s, t.grad_s, t.grad_compile_s, t.fft_floor_s,
                             t.peak_bytes / 2**20, t.grad_peak_bytes / 2**20,
                             {"accuracy": acc}))

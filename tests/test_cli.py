@@ -146,6 +146,7 @@ def test_undersampled_override_names_rule(tmp_path, capsys):
     doc = _small_doc()
     doc["camera"]["lens"]["pupil"]["circumradius"] = 51.5e-3 / (2 * 2.0)  # f/2
     doc["grid"]["oversample"] = 1
+    doc["grid"]["method"] = "fft"  # the paper's grid: its pupil must fit (the engine folds)
     scene = tmp_path / "s.json"
     scene.write_text(json.dumps(doc))
     assert main(["predict", str(scene), "--out", str(tmp_path / "o")]) == 2

@@ -51,7 +51,13 @@ def test_tighter_accuracy_never_gives_a_smaller_grid():
     with pytest.raises(ValueError, match="accuracy must be a finite number > 0"):
         padding_for_accuracy(0.0)
     with pytest.raises(ValueError, match="padding or accuracy, not both"):
-        choose_grid(camera, scene, crop=(64, 64), padding=1.0, accuracy=1e-3)
+        choose_grid(camera, scene, crop=(64, 64), padding=1.0, accuracy=1e-3, method="fft")
+    # the engine takes both: the period from the padding, the sub-cells from the accuracy
+    cam_d, scene_d = _scene("defocused")
+    coarse, fine = (choose_grid(cam_d, scene_d, crop=(64, 64), padding=1.0, accuracy=a)
+                    for a in (1e-2, 1e-4))
+    assert coarse.psf_plan.period == fine.psf_plan.period
+    assert coarse.psf_plan.subcells < fine.psf_plan.subcells
 
 
 @pytest.mark.parametrize("config", ["focused", "defocused"])

@@ -47,10 +47,14 @@ def camera_constants(man):
 
 
 def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
-                pattern: str, padding: float | None = None, values: dict | None = None):
+                pattern: str, padding: float | None = None, values: dict | None = None,
+                accuracy: float | None = None):
     """A FitModel for the manifest: grids from ``choose_grid`` at the parameters' most
     demanding bounds (largest |Δz| and source), ``crops`` per configuration, the
-    captures' rough source offsets from their region centres (px) and exposure times."""
+    captures' rough source offsets from their region centres (px) and exposure times.
+    ``padding`` (default: the manifest's ``grid.padding``, else 1) sets the PSF engine's
+    period; ``accuracy`` (default: the manifest's ``grid.accuracy``) its target, which
+    alone (no ``padding`` given here) also chooses the period."""
     import dataclasses
 
     from difstar import Grid
@@ -84,10 +88,10 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
             if p is not None and p.free:
                 x[key] = 1.3 * np.abs(p.value) + 0.3 * man.parameters[key]["perturb_scale"]
         camera, scene, _, _ = camera_scene(probe, x, name)
-        acc = man.grid.get("accuracy")
+        acc = man.grid.get("accuracy") if accuracy is None else accuracy
         g = choose_grid(camera, scene, crop=crop, raw_only=True,
-                        oversample=man.grid.get("oversample"),
-                        **({"padding": pad} if acc is None else {"accuracy": acc}))
+                        oversample=man.grid.get("oversample"), accuracy=acc,
+                        padding=pad if (acc is None or padding is not None) else None)
         dz = probe.params.get(f"defocus/{name}")
         use_dz = g.use_defocus or (dz is not None and dz.free)
         # the sources' window as the grid sized it, plus the source offsets' bounds
@@ -469,6 +473,12 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
 
 # ------------------------------------------------------------------------ synth
 
+#: The PSF engine's accuracy for synthetic captures (its default, tighter than a fit's
+#: grid default of 1e-2): the truth a recovery study is measured against is simulated
+#: with sub-cells finer than the fit's, on its own ``synthetic.padding`` period.
+SYNTH_ACCURACY = 1e-3
+
+
 def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
     """Simulate the manifest's captures from ``synthetic.truth`` on full frames and
     write them as DNGs into ``out_dir`` (whole or not at all). ``out_dir`` is checked
@@ -489,7 +499,7 @@ def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
             base_offsets={c.name: (c.source_position[0] - fh // 2,
                                    c.source_position[1] - fw // 2) for c in man.captures},
             exposure_times={c.name: c.exposure_time for c in man.captures}, pattern=pattern,
-            padding=syn["padding"], values=syn["truth"],
+            padding=syn["padding"], values=syn["truth"], accuracy=SYNTH_ACCURACY,
         )
         model = model.with_values(syn["truth"])
         _log("difstar synth: grids " + "; ".join(f"{c.name}: {c.grid.describe()}"

@@ -239,8 +239,9 @@ def choose_grid(
                          f"{method!r}.")
     # n or padding: the n × n grid's period, for the paper's transform ("fft") or the
     # engine's pruned one
-    if padding is not None and accuracy is not None:
-        raise ValueError("choose_grid: give padding or accuracy, not both.")
+    if padding is not None and accuracy is not None and method == "fft":
+        raise ValueError("choose_grid: give padding or accuracy, not both (on the paper's "
+                         "grid the accuracy chooses the padding).")
     if padding is None:
         padding = padding_for_accuracy(accuracy)
     elif not (float(padding) >= 0 and math.isfinite(float(padding))):
@@ -286,8 +287,9 @@ def choose_grid(
         )
     if method == "engine":
         # the grid's period through the PSF engine: pruned FFTs on the offsets the crop
-        # needs, the pupil's sub-cells at the grid's accuracy, and the pixels' own
-        # sub-samples where they undersample the intensity
+        # needs, the pupil's sub-cells at the accuracy (given with padding or n, or the
+        # grid's default), and the pixels' own sub-samples where they undersample the
+        # intensity
         return _engine_grid(camera, scene, crop, raw_only=raw_only, scaling=scaling,
                             accuracy=DEFAULT_ACCURACY if accuracy is None else accuracy,
                             oversample=oversample, n=int(n))
