@@ -145,9 +145,12 @@ def exact_focused_image(camera, scene, crop: tuple[int, int]) -> np.ndarray:
     g = difstar.geometry_of(camera, scene)
     p = camera.sensor.pixel_pitch
     rad = int(math.ceil(_source_radius_px(camera, scene))) + 2
+    light = difstar.radiometry(camera, scene, g)  # the light the pupil passes
     b = np.asarray(
         difstar.geometric_image(scene.sources, magnification=g.magnification, pixel_pitch=p,
-                                shape=(2 * rad + 1, 2 * rad + 1)),
+                                shape=(2 * rad + 1, 2 * rad + 1),
+                                extended_scale=light.extended_scale,
+                                point_scale=light.point_scale),
         float,
     )
     verts = np.asarray(camera.lens.pupil.vertices, float)
@@ -203,8 +206,9 @@ def paper_baseline(camera, scene, *, n: int, crop: tuple[int, int]):
     Fresnel scaling the reference uses, so the difference is numerical only),
     PSF = |IFFT(ATF)|², OTF = FFT(PSF), C = IFFT(OTF · FFT(B)), crop.
 
-    The geometric image B is difstar's (the same object for every method; computed before
-    the clock starts). Returns (image (3, h, w), seconds, peak bytes by tracemalloc).
+    The geometric image B is difstar's, with the light the pupil passes
+    (``difstar.radiometry``; the same object for every method; computed before the clock
+    starts). Returns (image (3, h, w), seconds, peak bytes by tracemalloc).
     """
     import difstar
     from difstar.stages import defocus_phase_coefficient
@@ -214,8 +218,11 @@ def paper_baseline(camera, scene, *, n: int, crop: tuple[int, int]):
     z_r = float(g.z_exit_pupil)
     dz = float(g.defocus)
     use_dz = difstar.needs_defocus(camera, scene)
+    rad = difstar.radiometry(camera, scene, g)  # the light the pupil passes, as simulate's
     b = np.asarray(difstar.geometric_image(scene.sources, magnification=g.magnification,
-                                           pixel_pitch=p, shape=(n, n)), float)
+                                           pixel_pitch=p, shape=(n, n),
+                                           extended_scale=rad.extended_scale,
+                                           point_scale=rad.point_scale), float)
     verts = np.asarray(camera.lens.pupil.vertices, float)
     lams = np.asarray(camera.sensor.wavelengths, float)
     r0, c0 = n // 2 - crop[0] // 2, n // 2 - crop[1] // 2
