@@ -22,9 +22,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from .._psf import psf
-from .._zernike import Zernike
-from ._params import _PITCH, ARCSEC
+from ._params import ARCSEC
 
 #: the parameters one PSF at the star's centre serves: a move of the star is a phase ramp
 #: of its spectrum, the rest act after the optics
@@ -62,18 +60,7 @@ def centred_psf(model, v: Mapping[str, Any], shape, light=None) -> np.ndarray:
     hp, wp = model.padded_shape(shape)
     q = fine_factor(model, light)
     v = {k: jnp.asarray(x, float) for k, x in {**v, "x0": 0.0, "y0": 0.0}.items()}
-    ang = v["pixel_scale"] * ARCSEC
-    zern = None
-    if model.zernike:
-        zern = Zernike({j: 1e-9 * v[f"z{j}"] for j in model.zernike},
-                       float(model.pupil.max_radius))
-    kw = dict(wavelength=np.asarray(light.wavelengths), weights=np.asarray(light.weights),
-              z_image=_PITCH / ang, pixel_pitch=_PITCH / q, shape=(hp * q, wp * q),
-              sampling="point", accuracy=model.accuracy)
-    img = psf(model._pupil_at(v), wavefront=zern, **kw)
-    if model.has_incoherent:  # as ImageModel.image mixes it
-        seg = psf(model._oriented(model.pupil.segment(v), v), **kw)
-        img = (1.0 - v["incoherent"]) * img + v["incoherent"] * seg
+    img = model.optics(v, light, (hp * q, wp * q), q, shift=False)
     return np.asarray(img) * q * q
 
 

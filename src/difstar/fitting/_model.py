@@ -439,38 +439,51 @@ class ImageModel:
         light = self.light if light is None else light
         hp, wp = self.padded_shape(shape)
         plan = self.plan((hp, wp), light) if plan is None else plan
-        ang = v["pixel_scale"] * ARCSEC  # radians per data pixel
-        z = _PITCH / ang * 1.0
-        zern = None
-        if self.zernike:
-            r = float(self.pupil.max_radius)
-            zern = Zernike({j: 1e-9 * v[f"z{j}"] for j in self.zernike}, r)
-        # a shift by (x0 columns right, y0 rows down) data pixels is a tilt of the
-        # wavefront: the field's phase exp(i k W) with W = −θ·x moves the image by +θ
-        tx = -v["x0"] * ang
-        ty = v["y0"] * ang
-        wf = _Shifted(zern, tx, ty)
-        pupil = self._pupil_at(v)
-        lam = np.asarray(light.wavelengths)
-        wts = np.asarray(light.weights)
         q = fine_factor(self, light)
-        grid = dict(wavelength=lam, weights=wts, z_image=z, pixel_pitch=_PITCH / q,
-                    shape=(hp * q, wp * q))
-        img = psf(pupil, plan=plan, wavefront=wf, **grid)
-        if self.has_incoherent:
-            # random phasing errors of RMS φ between segments: the mean image is
-            # e^(−φ²) × the whole pupil's + (1 − e^(−φ²)) × the sum of the segments' own
-            # patterns, each the one segment's shifted in the pupil (the same image)
-            seg = psf(self._oriented(self.pupil.segment(v), v),
-                      plan=self.plan((hp, wp), light, segment=True),
-                      wavefront=_Shifted(None, tx, ty), **grid)
-            img = (1.0 - v["incoherent"]) * img + v["incoherent"] * seg
+        seg = self.plan((hp, wp), light, segment=True) if self.has_incoherent else None
+        img = self.optics(v, light, (hp * q, wp * q), q, plans=(plan, seg))
         if q > 1:  # the data undersample the intensity: pixels and blurs in its spectrum
             img = pixels_from_fine(self, v, (hp, wp), img * (q * q), q)
         else:  # pixel-integrated samples of a band-limited image: blurs on them exact
             kern = self.detector_kernel(v, (hp, wp))
             img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
         return self.read_out(img, v, shape, exposure)
+
+    def optics(self, v: Mapping[str, Any], light: Light, fine_shape: tuple[int, int], q: int,
+               *, plans=None, shift: bool = True):
+        """The star's PSF on the ``fine_shape`` window sampled ``q`` times a data pixel a
+        side (fraction of the power per sample), for the optics at values ``v``, the
+        segments' incoherent part mixed in: the one place the model's pupil, wavefront
+        and light become a PSF (:meth:`image`, and the centred PSF of a stage that holds
+        the optics). ``plans``: (the whole pupil's, one segment's or None), as
+        :meth:`plan` makes them; None: planned by :func:`difstar.psf` at these (concrete)
+        values, point samples. ``shift``: moved by (``x0``, ``y0``) as a wavefront tilt."""
+        ang = v["pixel_scale"] * ARCSEC  # radians per data pixel
+        zern = None
+        if self.zernike:
+            r = float(self.pupil.max_radius)
+            zern = Zernike({j: 1e-9 * v[f"z{j}"] for j in self.zernike}, r)
+        whole_wf, seg_wf = zern, None
+        if shift:
+            # a shift by (x0 columns right, y0 rows down) data pixels is a tilt of the
+            # wavefront: the field's phase exp(i k W) with W = −θ·x moves the image by +θ
+            tx, ty = -v["x0"] * ang, v["y0"] * ang
+            whole_wf, seg_wf = _Shifted(zern, tx, ty), _Shifted(None, tx, ty)
+        grid = dict(wavelength=np.asarray(light.wavelengths),
+                    weights=np.asarray(light.weights), z_image=_PITCH / ang,
+                    pixel_pitch=_PITCH / q, shape=tuple(fine_shape))
+        if plans is None:
+            plans = (None, None)
+            grid.update(sampling="point", accuracy=self.accuracy)
+        img = psf(self._pupil_at(v), plan=plans[0], wavefront=whole_wf, **grid)
+        if self.has_incoherent:
+            # random phasing errors of RMS φ between segments: the mean image is
+            # e^(−φ²) × the whole pupil's + (1 − e^(−φ²)) × the sum of the segments' own
+            # patterns, each the one segment's shifted in the pupil (the same image)
+            seg = psf(self._oriented(self.pupil.segment(v), v), plan=plans[1],
+                      wavefront=seg_wf, **grid)
+            img = (1.0 - v["incoherent"]) * img + v["incoherent"] * seg
+        return img
 
     def detector_kernel(self, v: Mapping[str, Any], padded: tuple[int, int], q: int = 1,
                         *, data_grid: bool = True):
