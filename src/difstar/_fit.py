@@ -490,7 +490,9 @@ class Fitter:
 
         self._flat = eqx.filter_jit(flat)
         self._jac = eqx.filter_jit(jax.jacfwd(flat))
-        self._predict = eqx.filter_jit(lambda u: predict(model, from_unconstrained(model, u)))
+        # one compiled prediction (the photometric start, the reweighting's σ, the
+        # restarts and the outputs all read it): a second program for the mosaics alone
+        # would cost a compile of the chain for nothing
         self._predict_full = eqx.filter_jit(
             lambda u: predict(model, from_unconstrained(model, u), full=True))
         self._sensor_fn = make_sensor_residual_fn(model)
@@ -504,7 +506,10 @@ class Fitter:
         return float(0.5 * r @ r)
 
     def predict(self, u, *, full: bool = False) -> dict:
-        return (self._predict_full if full else self._predict)(u)
+        """{config: the RAW mosaics ζ (K_c, h, w)} at ``u`` (``full``: the whole
+        Predictions)."""
+        out = self._predict_full(u)
+        return out if full else {k: p.cfa for k, p in out.items()}
 
     def solve(self, u0, args, *, max_steps: int = 100, ftol: float = 1e-6,
               progress: Callable[[int, float, float, bool, np.ndarray], None] | None = None
