@@ -134,26 +134,25 @@ def choose_grid(
 ) -> Grid:
     """A grid satisfying the sampling rules for this camera and scene.
 
-    n ≥ crop + object diameter + blur + ``padding`` × crop, rounded up to a fast FFT
-    size: the crop's pixels then receive light only from PSF offsets inside the grid,
-    and the aliases of the PSF's slowly decaying spikes land ``padding × crop`` away.
-    ``padding`` defaults to the one whose measured error outside the source's core is at
-    most ``accuracy`` (relative RMS on the linear image; default
-    :data:`DEFAULT_ACCURACY`; calibration in BENCHMARKS.md). The oversampling q is the
-    smallest that meets rule 1 (q = 1 where the pixel grid already samples the PSF).
+    ``method`` (default: chosen) is "exact" for an in-focus scene with a polygonal
+    pupil, no wavefront, no spectral sensor and pixels that sample the intensity, when
+    none of ``n``, ``padding`` and ``accuracy`` is given: the closed-form PSF on exactly
+    the offsets the crop needs, no grid and no aliasing. Otherwise it is "engine": the PSF
+    engine of :func:`difstar.psf` (one planner for both) on the offsets the crop needs,
+    convolved linearly with the sources' window. Its period follows ``accuracy`` (the
+    engine's relative RMS target, default its own 1e-3), or the n × n grid that ``n`` or
+    ``padding`` give (then ``accuracy``, default :data:`DEFAULT_ACCURACY`, sets only the
+    pupil's sub-cells). ``oversample`` is the engine's odd number of samples a side per
+    pixel (default: the fewest at the intensity's Nyquist rate, 1 where the pixels
+    sample it; each pixel is their mean).
 
-    ``n`` and ``oversample`` override the choice; an override that breaks a rule raises
-    :class:`difstar.SamplingError` naming the rule and the value that would satisfy it.
-    On the PSF engine's grid (lens wavefronts, spectral sensors) ``oversample`` is the odd
-    number of samples a side per pixel (default: the fewest at the intensity's Nyquist
-    rate; each pixel is their mean).
-
-    ``method`` (default: chosen) is "engine" for a lens wavefront, a spectral sensor, or
-    pixels that undersample the intensity (:func:`pixel_bandwidth` over 0.5, unless
-    ``n``, ``padding`` or ``oversample`` is given); otherwise "exact" for an in-focus
-    scene with a polygonal pupil — the closed-form PSF on exactly the offsets the crop
-    needs, no grid and no aliasing (then ``n``, ``padding`` and ``accuracy`` do not
-    apply) — and "fft" otherwise.
+    "fft" (only when asked for) is the paper's transform of the whole n × n grid:
+    n ≥ crop + object diameter + blur + ``padding`` × crop, rounded up to a fast FFT size,
+    so that the aliases of the spikes land ``padding × crop`` away; ``padding`` defaults
+    to the one whose measured error outside the source's core is at most ``accuracy``
+    (calibration in BENCHMARKS.md), and its oversampling q is the smallest that meets
+    rule 1. An override that breaks a rule raises :class:`difstar.SamplingError` naming
+    the rule and the value that would satisfy it.
     """
     from ._psf import _edges
     from ._pupil import Polygon, RegularPolygon
