@@ -289,18 +289,12 @@ def _mem(compiled) -> int:
         return -1
 
 
-def camera_pitch(grid) -> float:
-    """The sensor's pixel pitch of the paper's camera (the grid does not hold it)."""
-    import difstar
-
-    return float(difstar.paper_camera("focused")[0].sensor.pixel_pitch)
-
-
-def fft_floor(grid, dtype, repeats: int = 3) -> float:
+def fft_floor(grid, dtype, pixel_pitch: float, repeats: int = 3) -> float:
     """Seconds for exactly the FFTs ``simulate`` does on ``grid``. Full FFT path: per
     channel one complex (nq)² inverse FFT (the field), one real n² FFT (the OTF) and one
     real inverse FFT (the image), plus the real FFT of the three-channel geometric image.
-    The PSF engine's path and the exact path: the transforms they do instead."""
+    The PSF engine's path and the exact path: the transforms they do instead
+    (``pixel_pitch``: the sensor's, which turns the engine's period into samples)."""
     import jax
     import jax.numpy as jnp
 
@@ -327,7 +321,7 @@ def fft_floor(grid, dtype, repeats: int = 3) -> float:
         from difstar.stages import fast_length
 
         plan, q, hb = grid.psf_plan, grid.oversample, grid.source_window * grid.oversample
-        nf = round(plan.period * q / camera_pitch(grid))
+        nf = round(plan.period * q / pixel_pitch)
         wp = plan.pupil_window
         kh = grid.crop[0] * q + hb - 1  # the PSF's offsets a side
         lh = fast_length(kh + hb - 1)
@@ -389,8 +383,8 @@ def time_difstar(camera, scene, grid, repeats: int = 3):
     jax.block_until_ready(gcompiled((camera, scene)))
     t_grad = _best(lambda: gcompiled((camera, scene)), repeats)
     dtype = camera.sensor.phi0.dtype
-    timing = Timing(t_compile, t_fwd, t_gcompile, t_grad, fft_floor(grid, dtype, repeats),
-                    _mem(compiled), _mem(gcompiled))
+    floor = fft_floor(grid, dtype, camera.sensor.pixel_pitch, repeats)
+    timing = Timing(t_compile, t_fwd, t_gcompile, t_grad, floor, _mem(compiled), _mem(gcompiled))
     return pred, timing
 
 
