@@ -73,7 +73,11 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
                     tuple(float(v) for v in base_offsets[c.name]))
         for c in man.captures
     )
-    pad = man.grid.get("padding", 1.0) if padding is None else padding
+    # the engine's period: the padding given here, else the one the manifest's accuracy
+    # plans, else the manifest's padding (default 1)
+    acc = man.grid.get("accuracy") if accuracy is None else accuracy
+    if padding is None and acc is None:
+        padding = man.grid.get("padding", 1.0)
     configs = []
     for name, cfg in man.configurations.items():
         crop = tuple(crops[name])
@@ -88,12 +92,14 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
             if p is not None and p.free:
                 x[key] = 1.3 * np.abs(p.value) + 0.3 * man.parameters[key]["perturb_scale"]
         camera, scene, _, _ = camera_scene(probe, x, name)
-        acc = man.grid.get("accuracy") if accuracy is None else accuracy
         g = choose_grid(camera, scene, crop=crop, raw_only=True,
-                        oversample=man.grid.get("oversample"), accuracy=acc,
-                        padding=pad if (acc is None or padding is not None) else None)
+                        oversample=man.grid.get("oversample"), accuracy=acc, padding=padding)
+        plan = g.psf_plan
         dz = probe.params.get(f"defocus/{name}")
-        use_dz = g.use_defocus or (dz is not None and dz.free)
+        if dz is not None and dz.free and not plan.use_defocus and plan.method != "exact":
+            # a free Δz moves from where the plan found its phase negligible: compute it
+            plan = dataclasses.replace(plan, use_defocus=True)
+        use_dz = plan.use_defocus or (dz is not None and dz.free)
         # the sources' window as the grid sized it, plus the source offsets' bounds
         off = probe.params.get(f"source_offset/{name}")
         reach = 0 if off is None or not off.free else int(np.ceil(np.max(np.abs(
@@ -101,7 +107,7 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
         # difstar.psf's engine on exactly the crop's offsets (padding: the grid's period)
         grid = Grid(n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz,
                     raw_only=True, method="engine", source_window=g.source_window + 2 * reach,
-                    psf_plan=g.psf_plan)
+                    psf_plan=plan)
         configs.append(dataclasses.replace(dummy, grid=grid))
     return FitModel(cc, tuple(configs), caps, params)
 
