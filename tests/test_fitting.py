@@ -18,9 +18,11 @@ import pytest
 from difstar.fitting import (
     FitData,
     FitInputError,
+    Hop,
     ImageModel,
     Light,
     Param,
+    Solve,
     chi2_slice,
     fit,
     iris_pupil,
@@ -694,6 +696,11 @@ def test_hop_leaves_a_neighbouring_basin(synthetic):
     assert abs(res.values["rotation"] - TRUE["rotation"]) < 1.0
     hop = [s for s in res.stages if "hop" in s][0]
     assert len(hop["tried"]) == 2 and hop["tried"][1]["chi2"] < hop["tried"][0]["chi2"]
+    # the same procedure as types (difstar.fitting.Solve, Hop): the same fit
+    typed = fit(model, data, stages=[Solve(free=["rotation"], max_steps=1),
+                                     Hop(name="rotation", offsets=[-25.0], stages=1)])
+    assert typed.values == res.values
+    assert [s.get("hop") for s in typed.stages] == [s.get("hop") for s in res.stages]
     with pytest.raises(FitInputError, match="hop"):
         fit(model, data, stages=[{"hop": {"name": "rotation", "offsets": [1.0]}}])
 

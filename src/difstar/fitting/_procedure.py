@@ -21,10 +21,12 @@ from ._solve import (
     _PixelTarget,
     model_images,
 )
+from ._stage_types import Hop, Repeat, Solve, parse_stage, stage_dicts
 from ._stages import _check_fit_inputs, _put
 
 
-def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = None,
+def fit(model: ImageModel, data, *, stages: Sequence[Solve | Hop | Repeat | Mapping] | str
+        | None = None,
         starts: Mapping[str, Sequence[float]] | None = None, max_steps: int = 100,
         rtol: float = 1e-6, atol: float = 1e-8, verbose: bool = False,
         per_capture: Sequence[str] | None = None) -> FitResult:
@@ -35,7 +37,8 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
     (default ``x0``, ``y0``, ``flux``, ``background``) has one value per capture,
     ``name@i`` in the result, and every other parameter is shared.
 
-    ``stages``: coarse to fine, each a dict with
+    ``stages``: coarse to fine, each a :class:`Solve`, :class:`Hop` or :class:`Repeat`, or
+    the same as a dict (as a manifest writes it), with
 
     - ``free`` (names, or "all": the model's free parameters), ``fix`` (names held);
     - ``set`` (name → value): before the stage, put those parameters at those values
@@ -113,7 +116,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
         model = model.for_captures(per, n_cap)
     if not model.free:
         raise FitInputError("fit: no free parameter (set free=true on at least one).")
-    stages = list(stages or [{"free": "all", "half": None}])
+    stages = stage_dicts(stages or [Solve()])  # checked in this form, then parsed
     values = model.values()
     log = []
     last_stage = {}
@@ -124,34 +127,33 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
     def run_stage(si, st, values, datas):
         """One stage from ``values``: returns (values, status, ok, steps, datas)."""
         datas = list(datas)
-        names = (model.free if st.get("free", "all") == "all"
-                 else model.expand(st["free"], n_cap))
-        fix = set(model.expand(st.get("fix", ()), n_cap))
+        names = (model.free if st.free == "all" else model.expand(st.free, n_cap))
+        fix = set(model.expand(st.fix, n_cap))
         names = [k for k in names if k not in fix]
         bad = set(names) - set(model.free)
         if bad:
             raise FitInputError(f"fit: stage {si} frees {sorted(bad)}, which are not free "
                                 "parameters of the model.")
-        if st.get("set") is not None:
-            put = st["set"]
+        if st.set is not None:
+            put = st.set
             if isinstance(put, Mapping):  # a per-capture name: every capture's own
                 put = {q2: x for q, x in put.items() for q2 in model.expand([q], n_cap)}
             values = {**values, **_put(model, put, f"fit: stage {si}: set")}
-            log.append({"stage": si, "set": dict(st["set"])})
-        if st.get("noise_from_residuals") is not None:
+            log.append({"stage": si, "set": dict(st.set)})
+        if st.noise_from_residuals is not None:
             mimgs = model_images(model, values, datas)
             noises = []
             for i, mi in enumerate(mimgs):
                 bg = model.capture_values(values, i)["background"]
                 nz, datas[i] = noise_from_residuals(datas[i], np.asarray(mi), bg,
-                                                    **dict(st["noise_from_residuals"]))
+                                                    **dict(st.noise_from_residuals))
                 noises.append({"read": nz.read, "gain": nz.gain, "floor": nz.floor})
             log.append({"stage": si, "noise": noises[0] if n_cap == 1 else noises})
             if verbose:
                 for nz in noises:
                     print(f"stage {si}: noise from the residuals: read {nz['read']:.4g}, "
                           f"gain {nz['gain']:.4g}, floor {nz['floor']:g}", flush=True)
-        if st.get("reject") is not None:
+        if st.reject is not None:
             mimgs = model_images(model, values, datas)
             counts, largest = [], []
             for i, mi in enumerate(mimgs):
@@ -159,33 +161,33 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
                 cv = model.capture_values(values, i)
                 datas[i], n, z = reject_outliers(datas[i], np.asarray(mi), cv["background"],
                                                  (w // 2 + cv["x0"], h // 2 + cv["y0"]),
-                                                 **dict(st["reject"]))
+                                                 **dict(st.reject))
                 counts.append(n)
                 largest.append(z)
             log.append({"stage": si, "rejected": counts[0] if n_cap == 1 else counts,
                         "largest_kept": largest[0] if n_cap == 1 else largest})
             if verbose:
                 print(f"stage {si}: rejected {counts[0] if n_cap == 1 else counts} pixels "
-                      f"more than {st['reject'].get('above', 20.0):g} σ from the model; "
+                      f"more than {st.reject.get('above', 20.0):g} σ from the model; "
                       f"the largest kept: {max(largest):.3g} σ", flush=True)
-        half = st.get("half")
+        half = st.half
         ds = [d if half is None else d.cropped(int(half)) for d in datas]
-        if st.get("annulus") is not None:
-            ds = [d.annulus(*(float(r) for r in st["annulus"])) for d in ds]
-        if st.get("spikes") is not None:
+        if st.annulus is not None:
+            ds = [d.annulus(*(float(r) for r in st.annulus)) for d in ds]
+        if st.spikes is not None:
             mimgs = [None] * len(ds)
-            if st["spikes"].get("directions") == "model":
+            if st.spikes.get("directions") == "model":
                 mimgs = model_images(model, values, ds)
             targets = [spike_target(d, model.capture_values(values, i), model_image=mi,
-                                    **dict(st["spikes"]))
+                                    **dict(st.spikes))
                        for i, (d, mi) in enumerate(zip(ds, mimgs))]
         else:
             targets = [_PixelTarget(d) for d in ds]
         kind = targets[0].kind
-        if st.get("scan") is not None:
-            name = st["scan"]["name"]
-            grid, cost = scan_grid(model, ds, targets, values, **dict(st["scan"]))
-            entry = {"stage": si, "scan": dict(st["scan"]), "best": values[name]}
+        if st.scan is not None:
+            name = st.scan["name"]
+            grid, cost = scan_grid(model, ds, targets, values, **dict(st.scan))
+            entry = {"stage": si, "scan": dict(st.scan), "best": values[name]}
             if grid.size:
                 values = {**values, name: float(grid[int(np.argmin(cost))])}
                 # Δχ² of one standard error, scaled by χ²/dof where the model's
@@ -205,8 +207,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
                         "each (chi2_slice shows the curve).")
             log.append(entry)
             if verbose:
-                print(f"stage {si}: scan of {st['scan']['name']}: best "
-                      f"{values[st['scan']['name']]:.4g}", flush=True)
+                print(f"stage {si}: scan of {name}: best {values[name]:.4g}", flush=True)
         tries = [{}]
         if si == 0 and starts:
             tries = [{}]
@@ -216,8 +217,9 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
         for tr in tries:
             m = model.with_values({**values, **tr}, free=names)
             ts = time.perf_counter()
-            vals, status, ok, n, m, chi2, lin = _one_fit(m, ds, targets, max_steps=int(
-                st.get("max_steps", max_steps)), rtol=float(st.get("rtol", rtol)), atol=atol,
+            vals, status, ok, n, m, chi2, lin = _one_fit(
+                m, ds, targets, max_steps=int(max_steps if st.max_steps is None else st.max_steps),
+                rtol=float(rtol if st.rtol is None else st.rtol), atol=atol,
                 label=f"stage {si}" if verbose else None)
             entry = {"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
                      "kind": kind, "status": status, "steps": n,
@@ -241,8 +243,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
 
     def solving_before(si):
         """The solving stages before stage ``si`` (hop and repeat stages passed over)."""
-        return [sj for sj in range(si)
-                if stages[sj].get("hop") is None and stages[sj].get("repeat") is None]
+        return [sj for sj in range(si) if isinstance(stages[sj], Solve)]
 
     def rerun(which, v, datas):
         """Re-run the stages ``which`` from ``v`` with σ and the pixels as they are
@@ -251,9 +252,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
         ds = list(datas)
         st_j, ok_j, n_j = status, ok, steps
         for sj in which:
-            again = {q: x for q, x in stages[sj].items()
-                     if q not in ("noise_from_residuals", "reject")}
-            v, st_j, ok_j, n_j, ds = run_stage(sj, again, v, ds)
+            v, st_j, ok_j, n_j, ds = run_stage(sj, stages[sj].without_estimates(), v, ds)
         return v, (st_j, ok_j, n_j), ds
 
     def repeat(si, st, values, datas):
@@ -263,7 +262,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
         turn (e.g. the rotation on the spikes, then the rest on all pixels), which one
         pass leaves wherever its start put it in a long, flat valley."""
         nonlocal status, ok, steps
-        k, until, max_rounds = repeats[si]
+        k, until, max_rounds = st.stages, st.until, st.max_rounds
         solving = solving_before(si)
         names = {q2: tol for q, tol in until.items() for q2 in model.expand([q], n_cap)}
         rounds = []
@@ -281,7 +280,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
             if all(abs(moved[q]) < names[q] for q in names):
                 settled = True
                 break
-        log.append({"stage": si, "repeat": dict(st["repeat"]), "rounds": rounds,
+        log.append({"stage": si, "repeat": st.as_dict()["repeat"], "rounds": rounds,
                     "settled": settled})
         if not settled:
             notes.append(f"repeat (stage {si}): {', '.join(names)} still moved by more than "
@@ -297,28 +296,13 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
         noise); keep whichever ends at the lowest χ² on all pixels, the unchanged
         result included."""
         nonlocal status, ok, steps, spike_errors
-        h = dict(st["hop"])
-        k = int(h.get("stages", 2))
+        # checked before any fitting (._stages._check_hop)
+        k = st.stages
         solving = solving_before(si)
-        # each entry of flip: one name, or a list of names negated together (the twin)
-        flips = [(q,) if isinstance(q, str) else tuple(q) for q in h.get("flip", ())]
-        name = h.get("name")
-        put = dict(h.get("set", {}))
-        named = [q for g in flips for q in g] + list(put) + ([name] if name is not None else [])
-        bad = [q for q in named if not isinstance(q, str) or q not in model.params]
-        if any(not g for g in flips):
-            bad.append("[] (an empty group)")
-        kinds = (name is not None) + bool(flips) + bool(put)
-        if (bad or not 1 <= k <= len(solving) or kinds != 1
-                or (name is not None and not h.get("offsets"))):
-            raise FitInputError(f"fit: stage {si}: hop needs one of: a parameter of the model "
-                                "with offsets ({'name': ..., 'offsets': [...]}), a list of "
-                                "parameters to negate, each a name or a list of names "
-                                "negated together ({'flip': ['z6', ['z4', 'z11']]}), or "
-                                "values to put "
-                                "({'set': {name: value}}); and 1 <= stages <= "
-                                f"{len(solving)} earlier solving stages; got {h}"
-                                + (f" (unknown: {bad})" if bad else "") + ".")
+        # each entry of flip: one name, or a tuple of names negated together (the twin)
+        flips = [(q,) if isinstance(q, str) else tuple(q) for q in st.flip]
+        name = st.name
+        put = dict(st.set or {})
         ref = list(datas)
 
         def chi2_of(v):
@@ -328,7 +312,7 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
         best = (chi2_of(values), values, datas, (status, ok, steps), dict(spike_errors))
         tried = [{"change": "none", "chi2": best[0]}]
         moves = ([(f"{name} {float(off):+g}", {name: values[name] + float(off)})
-                  for off in h.get("offsets", ()) if name is not None]
+                  for off in st.offsets if name is not None]
                  + [(", ".join(g) + " negated", {q: -values[q] for q in g}) for g in flips]
                  + ([("set " + ", ".join(f"{q}={x:g}" for q, x in put.items()), put_at)]
                     if put else []))
@@ -347,19 +331,19 @@ def fit(model: ImageModel, data, *, stages: Sequence[Mapping] | str | None = Non
                       f"(best so far {best[0]:.6g})", flush=True)
             if c < best[0]:
                 best = (c, v, ds, (st_j, ok_j, n_j), dict(spike_errors))
-        log.append({"stage": si, "hop": h, "tried": tried})
+        log.append({"stage": si, "hop": st.as_dict()["hop"], "tried": tried})
         _, values, datas, (status, ok, steps), spike_errors = best
         return values, datas
 
     # every stage's mistakes (keys, names, windows, limits, scans, hops, repeats) and the
     # starts' are found before any fitting; a repeat's (stages, until, max_rounds) kept
-    repeats = _check_fit_inputs(model, datas, stages, starts=starts, max_steps=max_steps,
-                                rtol=rtol)
+    _check_fit_inputs(model, datas, stages, starts=starts, max_steps=max_steps, rtol=rtol)
+    stages = [parse_stage(st) for st in stages]
     for si, st in enumerate(stages):
-        if st.get("hop") is not None:
+        if isinstance(st, Hop):
             values, datas = hop(si, st, values, datas)
             continue
-        if st.get("repeat") is not None:
+        if isinstance(st, Repeat):
             values, datas = repeat(si, st, values, datas)
             continue
         values, status, ok, steps, datas = run_stage(si, st, values, datas)
