@@ -179,7 +179,8 @@ def test_synth_dng_roundtrip(tmp_path):
     prediction within the Poisson–Gaussian noise, and saturation is flagged."""
     import json
 
-    from difstar._fit_run import load_captures, observed_data, prepare, synthesize
+    from difstar._fit_procedure import observed_data
+    from difstar._fit_run import load_captures, prepare, synthesize
     from difstar.io._manifest import load_manifest
 
     doc = {
@@ -285,7 +286,7 @@ def test_sensor_only_residuals_are_the_whole_chains_with_the_optics_held():
 def test_response_curve_restarts_leave_a_shallow_basin():
     """A knee stuck at half its value (the local minimum the issue found on independent
     captures) is left by the restarts: they end at a lower loss, near the true knee."""
-    from difstar._fit_run import restart_response_curves
+    from difstar._fit_procedure import restart_response_curves
 
     free = dict(FREE, knee=(5.0, 200.0))
     model = _model(free)

@@ -10,21 +10,13 @@ pure layer. The command line (:mod:`difstar.cli._fit`) only parses, calls and wr
 from __future__ import annotations
 
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from difstar._fit_procedure import FIRST_STEP, _log, procedure_of, run_stages
 from difstar._fit_truth import compare_truth
-from difstar._progress import moved_most
-
-SATURATION_GUARD = 4.0  # also mask pixels expected within this many σ of the white level
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
 
 # ------------------------------------------------------------------------ model setup
 
@@ -171,31 +163,6 @@ def load_captures(man):
     return out, pattern
 
 
-def observed_data(model, caps: dict, noise: dict, sigma_from: dict | None = None):
-    """{config: (ζ_obs, weight)} with σ from ``sigma_from`` ({config: ζ (K, h, w)}, e.g.
-    a prediction) or from the observed ζ."""
-    import jax.numpy as jnp
-
-    from difstar._fit import noise_sigma, weights
-
-    data = {}
-    for cfg in model.configs:
-        names = [c.name for c in model.captures_of(cfg.name)]
-        z = np.stack([caps[n]["zeta"] for n in names])
-        sat = np.stack([caps[n]["saturated"] for n in names])
-        fs = np.asarray([caps[n]["full_scale_dn"] for n in names])[:, None, None]
-        ref = z if sigma_from is None else np.asarray(sigma_from[cfg.name])
-        kw = dict(gain_e_per_dn=noise["gain_e_per_dn"], read_noise_dn=noise["read_noise_dn"],
-                  full_scale_dn=jnp.asarray(fs))
-        sig = noise_sigma(jnp.asarray(ref), **kw)
-        # Censoring: a pixel whose expected value lies within a few σ of the white level
-        # is clipped by its noise more often one way than the other, so its unclipped
-        # values are biased low (a 1 % bias in φ0 here). Mask them as well as the clipped.
-        near = np.asarray(ref) >= 1.0 - SATURATION_GUARD * np.asarray(noise_sigma(1.0, **kw))
-        data[cfg.name] = (jnp.asarray(z), weights(sig, jnp.asarray(sat | near)))
-    return data
-
-
 def prepare(man):
     """The manifest's captures read (:func:`load_captures`) and its :class:`FitModel`
     built for them (:func:`build_model`): returns (model, captures)."""
@@ -211,24 +178,6 @@ def prepare(man):
 
 
 # ------------------------------------------------------------------------------ fit
-
-#: Seconds from the command's start to the end of its first solver step (once per process).
-FIRST_STEP: dict = {}
-
-
-def seconds_since_process_start() -> float | None:
-    """Seconds since this process started (Linux /proc; None elsewhere)."""
-    import os
-
-    try:
-        with open("/proc/self/stat") as f:
-            start = float(f.read().rsplit(")", 1)[1].split()[19])  # field 22, in ticks
-        with open("/proc/uptime") as f:
-            up = float(f.read().split()[0])
-        return up - start / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
-        return None
-
 
 def photometric_start(fitter, caps, u0):
     """``u0`` with a free φ0 set, per channel, so that the model's linear image at ``u0``
@@ -267,132 +216,6 @@ def photometric_start(fitter, caps, u0):
     return to_unconstrained(model, values)
 
 
-def run_stages(fitter, model, caps, noise, u0, solver: dict, *, verbose: bool = True):
-    """Stage 1: the response curves (toe, knee) held at their starts, σ from the
-    observed values; stage 2 (repeated ``reweight`` times): everything free, σ from the
-    current prediction. Returns the final solve (:class:`difstar._lm.SolveResult`: its
-    ``u``, and its linearisation for the covariance), the per-stage records and the last
-    stage's solver ``args``."""
-    from difstar._fit import free_parts, make_args
-
-    stages = []
-    u = u0
-    plan = [("optics, exposure, source (response curves held)", ("toe", "knee"), False)]
-    plan += [("all free parameters, σ from the prediction", (), True)] * max(
-        1, int(solver.get("reweight", 1)))
-    for label, hold, reweight in plan:
-        sigma_from = fitter.predict(u) if reweight else None
-        data = observed_data(model, caps, noise, sigma_from)
-        args = make_args(model, data, u, hold=hold)
-        if verbose:
-            _log(f"difstar fit: stage {len(stages) + 1}: {label}")
-            _log(f"{'iter':>6} {'loss':>14} {'step size':>11}  moved most")
-        last = [free_parts(model, u)]
-
-        def progress(k, loss, size, done, u_k):
-            if k == 1 and not stages and "first_step" not in FIRST_STEP:
-                FIRST_STEP["first_step"] = seconds_since_process_start()
-                if verbose and FIRST_STEP["first_step"] is not None:
-                    _log(f"difstar fit: first step done {FIRST_STEP['first_step']:.1f} s "
-                         "after the command started")
-            if verbose:
-                parts = free_parts(model, u_k)
-                name, _ = moved_most(last[0], parts)
-                last[0] = parts
-                _log(f"{k:>6d} {loss:>14.6g} {size:>11.3g}  {name or '-'}"
-                     + ("  (done)" if done else ""))
-
-        res = fitter.solve(u, args, max_steps=int(solver.get("max_steps", 100)),
-                           ftol=float(solver.get("ftol", 1e-6)), progress=progress)
-        u, solved = res.u, res
-        stages.append({
-            "label": label, "held": list(hold), "steps": res.steps, "accepted": res.accepted,
-            "loss_start": res.loss_start, "loss_end": res.loss, "result": res.result,
-            "seconds": res.seconds, "compile_seconds": res.compile_seconds,
-        })
-        if verbose:
-            _log(f"difstar fit: stage {len(stages)} {res.result} after {res.steps} steps, "
-                 f"{res.seconds:.1f} s (+ {res.compile_seconds:.1f} s compile)")
-    t0 = time.perf_counter()
-    solved, tries = restart_response_curves(fitter, model, solved, args, solver,
-                                            verbose=verbose)
-    if tries:
-        kept = [t for t in tries if t["kept"]]
-        stages.append({"label": "response-curve restarts", "tries": tries,
-                       "steps": sum(t["steps"] for t in tries),
-                       "result": f"{len(kept)} of {len(tries)} kept",
-                       "seconds": time.perf_counter() - t0, "compile_seconds": 0.0})
-    return solved, stages, args
-
-
-#: Restarts of each channel's response-curve parameters, as factors of the value reached:
-#: the knee and toe of a channel whose captures barely reach its shoulder are weakly
-#: constrained, and Levenberg–Marquardt can stop in a shallow basin (a knee half or
-#: twice its true value) that the other channels' data do not pull it out of.
-RESTART_FACTORS = (0.5, 2.0)
-RESTARTED = ("knee",)
-
-
-def restart_response_curves(fitter, model, solved, args, solver: dict, *,
-                            verbose: bool = True):
-    """From the converged solve ``solved`` (a :class:`difstar._lm.SolveResult` on
-    ``args``), try each channel's knee moved by each of :data:`RESTART_FACTORS` (inside
-    its bounds), everything else as reached; keep any start that ends at a lower loss.
-    Returns (the best solve, tries). (The toe, pinned by the unsaturated dark pixels of
-    every capture, has not needed it.)
-
-    A restart first re-solves that channel's sensor parameters alone (φ0, toe, knee),
-    the optics held where ``solved`` put them (:meth:`difstar._fit.Fitter.solve_sensor`:
-    a step costs the sensor's arithmetic on the linear images predicted once, not the
-    PSF). The basin a restart looks for is the response curve's; only a restart that
-    ends lower there is then solved with everything free, from where it ended, and kept
-    if that ends lower than ``solved``."""
-    from difstar._fit import from_unconstrained, to_unconstrained
-
-    tries = []
-    specs = [(name, model.params[name]) for name in RESTARTED
-             if name in model.params and model.params[name].free]
-    if not specs:
-        return solved, tries
-    max_steps = int(solver.get("max_steps", 100))
-    ftol = float(solver.get("ftol", 1e-6))
-    images = fitter.linear_images(solved.u)  # the optics' work, once
-    for name, spec in specs:
-        for ch in range(spec.size):
-            sensor_args = fitter.sensor_args(solved.u, args["data"], ch, images)
-            floor = fitter.sensor_loss(solved.u, sensor_args)  # = the loss at solved.u
-            for f in RESTART_FACTORS:
-                vals = {k: np.asarray(v) for k, v in
-                        from_unconstrained(model, solved.u).items()}
-                x = vals[name].copy()
-                span = spec.hi[ch] - spec.lo[ch]
-                x[ch] = np.clip(x[ch] * f, spec.lo[ch] + 1e-3 * span, spec.hi[ch] - 1e-3 * span)
-                vals[name] = x
-                res = fitter.solve_sensor(to_unconstrained(model, vals), sensor_args,
-                                          max_steps=max_steps, ftol=ftol)
-                steps = res.steps
-                # a lower basin (by more than χ² 1, a 1-σ change of one parameter, and
-                # than rounding): solve it whole
-                lower = floor - res.loss > max(0.5, 1e-6 * floor)
-                if lower:
-                    res = fitter.solve(res.u, args, max_steps=max_steps, ftol=ftol)
-                    steps += res.steps
-                # solved.loss: the loss at solved.u (no model evaluation to compile)
-                better = lower and res.loss < solved.loss * (1 - 1e-9)
-                tries.append({"parameter": f"{name}[{ch}]", "factor": f, "loss": res.loss,
-                              "kept": bool(better), "steps": steps})
-                if verbose:
-                    _log(f"difstar fit: restart {name}[{'RGB'[ch] if spec.size == 3 else ch}] "
-                         f"× {f:g}: loss {res.loss:.7g} "
-                         f"({'lower: kept' if better else 'not lower'})")
-                if better:
-                    solved = res
-                    images = fitter.linear_images(solved.u)
-                    sensor_args = fitter.sensor_args(solved.u, args["data"], ch, images)
-                    floor = fitter.sensor_loss(solved.u, sensor_args)
-    return solved, tries
-
-
 def _values(model, u) -> dict:
     from difstar._fit import from_unconstrained
 
@@ -424,6 +247,7 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
     t_all = time.perf_counter()
     if model is None:
         model, caps = prepare(man)
+    procedure = procedure_of(model, man.solver, str(man.path))  # checked before compiling
     if fitter is None:
         fitter = Fitter(model, method=man.solver["method"], rtol=man.solver["rtol"],
                         atol=man.solver["atol"], devices=devices)
@@ -434,7 +258,7 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
         _log(f"difstar fit: {len(model.captures)} captures, {model.n_free} free parameters, "
              "grids " + "; ".join(f"{c.name}: {c.grid.describe()}" for c in model.configs))
     solved, stages, args = run_stages(fitter, model, caps, man.noise, u0, man.solver,
-                                      verbose=verbose)
+                                      procedure=procedure, verbose=verbose)
     u = solved.u
     t0 = time.perf_counter()
     cov, se, diag = fitter.covariance(u, args, solved)

@@ -39,11 +39,11 @@ modules, in the order they build on one another: ``_params`` (:class:`Param`), `
 (pupil builders, :class:`Light`), ``_data`` (:class:`FitData`, :class:`Noise`), ``_model``
 (:class:`ImageModel`), ``_solve`` (one solve, its errors, :class:`FitResult`),
 ``_analysis`` (χ² slices, rough starts, spike angles), ``_stage_types`` (a procedure's
-stages as types: :class:`Solve`, :class:`Hop`, :class:`Repeat`), ``_stages`` (the checks
-of a fit's stages), ``_auto`` (:func:`auto_stages`: the stages a fit chooses when it is given
-none), ``_procedure`` (:func:`fit`), ``_manifest`` (:func:`load_manifest`), ``_studies``
-(changed copies of a fitted star: fainter, moved on the pixel grid, with a neighbour;
-the noise limit), ``_run`` (:func:`run_fit_image`).
+stages as types: :class:`Solve`, :class:`Hop`, :class:`Repeat`, :class:`Restart`),
+``_stages`` (the checks of a fit's stages), ``_auto`` (:func:`auto_stages`: the stages
+a fit chooses when it is given none), ``_procedure`` (:func:`fit`), ``_manifest``
+(:func:`load_manifest`), ``_studies`` (changed copies of a fitted star: fainter, moved
+on the pixel grid, with a neighbour; the noise limit), ``_run`` (:func:`run_fit_image`).
 """
 
 from ._analysis import chi2_at as chi2_at
@@ -73,6 +73,7 @@ from ._solve import model_images as model_images
 from ._solve import noise_limited_errors as noise_limited_errors
 from ._stage_types import Hop as Hop
 from ._stage_types import Repeat as Repeat
+from ._stage_types import Restart as Restart
 from ._stage_types import Solve as Solve
 from ._studies import contaminated_image as contaminated_image
 from ._studies import fit_changed_copy as fit_changed_copy
@@ -85,7 +86,7 @@ from ._studies import shifted_image as shifted_image
 
 __all__ = [
     "FitData", "FitInputError", "FitResult", "Hop", "ImageModel", "Light", "Noise", "Param",
-    "PupilBuilder", "Repeat", "Solve", "auto_stages", "chi2_at", "chi2_slice",
+    "PupilBuilder", "Repeat", "Restart", "Solve", "auto_stages", "chi2_at", "chi2_slice",
     "contaminated_image", "data_intensity",
     "fainter_copy", "fit", "fit_changed_copy", "fit_contaminated_copy", "fit_fainter_copy",
     "fit_joint", "fit_shifted_copy", "iris_pupil", "jwst_pupil", "load_manifest", "model_images",

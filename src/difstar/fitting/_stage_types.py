@@ -1,11 +1,15 @@
-"""A fit's procedure as types: :class:`Solve`, :class:`Hop` and :class:`Repeat`.
+"""A fit's procedure as types: :class:`Solve`, :class:`Hop`, :class:`Repeat` and
+:class:`Restart`.
 
 A stage may be given as one of these or as a dict, as a manifest writes it
 (``{"free": ["rotation"], "half": 20}``, ``{"hop": {...}}``, ``{"repeat": {...}}``).
 :func:`difstar.fitting.fit` checks every stage before anything solves
 (:func:`._stages._check_fit_inputs`, on the dict form, so both forms get the same
 checks and the same messages), then parses each into one of these types, once
-(:func:`parse_stage`); the procedure reads only the types."""
+(:func:`parse_stage`); the procedure reads only the types. The RAW fit
+(:mod:`difstar._fit_procedure`) runs the same :class:`Solve` (its ``free``, ``fix``,
+``max_steps`` and ``sigma``) and :class:`Restart`; an image fit refuses ``sigma`` and
+restarts, a RAW fit hops and repeats, each naming the stage."""
 
 from __future__ import annotations
 
@@ -24,7 +28,9 @@ class Solve:
     ``free`` ("all" or names) less ``fix``; ``set`` values put first; the window
     (``half``, ``annulus``); ``spikes`` (fit the spikes' pixels or profiles);
     ``noise_from_residuals`` and ``reject`` before solving; ``scan`` a parameter first;
-    the solver's ``max_steps`` and ``rtol`` (None: the fit's)."""
+    the solver's ``max_steps`` and ``rtol`` (None: the fit's); ``sigma`` (RAW fits):
+    "prediction" takes σ from the model's prediction at the values reached, "data" or
+    None from the observed values."""
 
     free: str | Sequence[str] = "all"
     fix: str | Sequence[str] = ()
@@ -37,6 +43,7 @@ class Solve:
     scan: Mapping[str, Any] | None = None
     max_steps: int | float | None = None
     rtol: float | int | None = None
+    sigma: str | None = None
 
     def __post_init__(self):
         if self.free != "all":
@@ -105,8 +112,25 @@ class Repeat:
                            "max_rounds": self.max_rounds}}
 
 
-Stage = Solve | Hop | Repeat
-STAGE_TYPES = (Solve, Hop, Repeat)
+@dataclasses.dataclass(frozen=True)
+class Restart:
+    """(RAW fits) Move each channel's response-curve ``parameter`` (``phi0``, ``toe`` or
+    ``knee``) by each of ``factors`` from where the solves before left it, re-solve, and
+    keep what ends at a lower loss: a way out of a shallow basin of a weakly constrained
+    shoulder (:func:`difstar._fit_procedure.restart_response_curves`)."""
+
+    parameter: str = "knee"
+    factors: Sequence[Any] = (0.5, 2.0)
+
+    def __post_init__(self):
+        object.__setattr__(self, "factors", tuple(self.factors))
+
+    def as_dict(self) -> dict:
+        return {"restart": {"parameter": self.parameter, "factors": list(self.factors)}}
+
+
+Stage = Solve | Hop | Repeat | Restart
+STAGE_TYPES = (Solve, Hop, Repeat, Restart)
 
 
 def stage_dicts(stages: Sequence) -> list:

@@ -1,0 +1,305 @@
+"""The RAW fit's procedure: its stages as the types the image fit uses
+(:class:`difstar.fitting.Solve`, and :class:`difstar.fitting.Restart` for the response
+curves), the default one, the checks of a manifest's ``solver.stages`` and the loop that
+runs them. Pure layer under ``difstar fit``: no files; progress on stderr.
+
+The default procedure (:func:`default_procedure`), as a manifest would write it::
+
+    "stages": [{"fix": ["toe", "knee"]},                       # σ from the data
+               {"sigma": "prediction"},                         # × solver.reweight
+               {"restart": {"parameter": "knee", "factors": [0.5, 2]}}]
+
+A solve frees ``free`` ("all", or names: a parameter's name, or the base name of a
+per-configuration or per-capture family such as ``defocus``) less ``fix``, every other
+free parameter held where the stages before left it; ``sigma`` "prediction" takes σ
+from the model's prediction at the values reached (the Poisson–Gaussian noise of the
+predicted mosaic), otherwise from the observed values; ``max_steps`` (default: the
+solver's). A restart moves each channel's ``parameter`` (a response-curve parameter:
+``phi0``, ``toe`` or ``knee``) by each factor and keeps what ends lower
+(:func:`restart_response_curves`)."""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from difstar._progress import moved_most
+from difstar.fitting._stage_types import Restart, Solve, parse_stage
+
+#: Restarts of each channel's response-curve parameters, as factors of the value reached:
+#: the knee and toe of a channel whose captures barely reach its shoulder are weakly
+#: constrained, and Levenberg–Marquardt can stop in a shallow basin (a knee half or
+#: twice its true value) that the other channels' data do not pull it out of.
+RESTART_FACTORS = (0.5, 2.0)
+
+#: The sensor's parameters a restart may move (one value per channel).
+RESTARTABLE = ("phi0", "toe", "knee")
+
+#: Seconds from the command's start to the end of its first solver step (once per process).
+FIRST_STEP: dict = {}
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def seconds_since_process_start() -> float | None:
+    """Seconds since this process started (Linux /proc; None elsewhere)."""
+    import os
+
+    try:
+        with open("/proc/self/stat") as f:
+            start = float(f.read().rsplit(")", 1)[1].split()[19])  # field 22, in ticks
+        with open("/proc/uptime") as f:
+            up = float(f.read().split()[0])
+        return up - start / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+#: Also mask pixels expected within this many σ of the white level (see observed_data).
+SATURATION_GUARD = 4.0
+
+
+def observed_data(model, caps: dict, noise: dict, sigma_from: dict | None = None):
+    """{config: (ζ_obs, weight)} with σ from ``sigma_from`` ({config: ζ (K, h, w)}, e.g.
+    a prediction) or from the observed ζ."""
+    import jax.numpy as jnp
+
+    from difstar._fit import noise_sigma, weights
+
+    data = {}
+    for cfg in model.configs:
+        names = [c.name for c in model.captures_of(cfg.name)]
+        z = np.stack([caps[n]["zeta"] for n in names])
+        sat = np.stack([caps[n]["saturated"] for n in names])
+        fs = np.asarray([caps[n]["full_scale_dn"] for n in names])[:, None, None]
+        ref = z if sigma_from is None else np.asarray(sigma_from[cfg.name])
+        kw = dict(gain_e_per_dn=noise["gain_e_per_dn"], read_noise_dn=noise["read_noise_dn"],
+                  full_scale_dn=jnp.asarray(fs))
+        sig = noise_sigma(jnp.asarray(ref), **kw)
+        # Censoring: a pixel whose expected value lies within a few σ of the white level
+        # is clipped by its noise more often one way than the other, so its unclipped
+        # values are biased low (a 1 % bias in φ0 here). Mask them as well as the clipped.
+        near = np.asarray(ref) >= 1.0 - SATURATION_GUARD * np.asarray(noise_sigma(1.0, **kw))
+        data[cfg.name] = (jnp.asarray(z), weights(sig, jnp.asarray(sat | near)))
+    return data
+
+
+def default_procedure(model, solver: dict) -> tuple:
+    """The response curves held and σ from the data; then everything free with σ from
+    the prediction (``solver.reweight`` times, at least once); then, where the knee is
+    free, its restarts."""
+    stages = [Solve(fix=("toe", "knee"))]
+    stages += [Solve(sigma="prediction")] * max(1, int(solver.get("reweight", 1)))
+    knee = model.params.get("knee")
+    if knee is not None and knee.free:
+        stages.append(Restart("knee", RESTART_FACTORS))
+    return tuple(stages)
+
+
+def _names(model, given, where: str) -> set[str]:
+    """The model's free parameters that ``given`` names (a full name, or a family's base
+    name); a name that is no parameter of the model is refused."""
+    out = set()
+    for q in given:
+        hit = {k for k in model.free if k == q or k.split("/", 1)[0] == q}
+        if not hit and not any(k == q or k.split("/", 1)[0] == q for k in model.params):
+            raise ValueError(f"{where}: {q!r} is not a parameter of the fit; known: "
+                             f"{sorted(model.params)}.")
+        out |= hit
+    return out
+
+
+def freed(model, st: Solve, where: str = "stage") -> set[str]:
+    """The free parameters a solve moves."""
+    free = set(model.free) if st.free == "all" else _names(model, st.free, where + "/free")
+    return free - _names(model, st.fix, where + "/fix")
+
+
+def procedure_of(model, solver: dict, src: str = "<manifest>") -> tuple:
+    """The procedure ``solver.stages`` gives (dicts, as a manifest writes them, or typed
+    stages), checked against ``model``; the default one where it gives none. Raises
+    ``SceneError`` naming the stage and field."""
+    from difstar.io._scene import SceneError
+
+    given = solver.get("stages")
+    if given is None:
+        return default_procedure(model, solver)
+    if not isinstance(given, (list, tuple)) or not given:
+        raise SceneError(f"{src}: field solver/stages: a non-empty list of stages; got "
+                         f"{given!r}.")
+    out = []
+    solve_fields = ("free", "fix", "max_steps", "sigma")
+    for i, st in enumerate(given):
+        where = f"{src}: field solver/stages/{i}"
+        try:
+            if isinstance(st, dict):
+                st = parse_stage(st) if "restart" not in st else Restart(**st["restart"])
+        except TypeError as e:
+            raise SceneError(f"{where}: {e}") from None
+        if isinstance(st, Restart):
+            if not out:
+                raise SceneError(f"{where}: a restart needs a solve before it.")
+            p = model.params.get(st.parameter)
+            if st.parameter not in RESTARTABLE or p is None or not p.free:
+                raise SceneError(f"{where}/restart/parameter: restarts move a free response-"
+                                 f"curve parameter (one of {list(RESTARTABLE)}); got "
+                                 f"{st.parameter!r}.")
+            if not st.factors or not all(isinstance(f, (int, float)) and math.isfinite(f)
+                                         and f > 0 for f in st.factors):
+                raise SceneError(f"{where}/restart/factors: finite numbers > 0; got "
+                                 f"{list(st.factors)}.")
+            out.append(st)
+            continue
+        if not isinstance(st, Solve):
+            raise SceneError(f"{where}: a RAW fit's stage is a solve ({list(solve_fields)}) "
+                             f"or a restart; got {type(st).__name__}.")
+        extra = sorted(k for k in st.as_dict() if k not in solve_fields)
+        if extra:
+            raise SceneError(f"{where}: {extra} apply to image fits; a RAW fit's solve takes "
+                             f"{list(solve_fields)}.")
+        if st.sigma not in (None, "data", "prediction"):
+            raise SceneError(f"{where}/sigma: 'data' or 'prediction'; got {st.sigma!r}.")
+        if st.max_steps is not None and not (float(st.max_steps).is_integer()
+                                             and st.max_steps >= 1):
+            raise SceneError(f"{where}/max_steps: a whole number >= 1; got {st.max_steps!r}.")
+        try:
+            moved = freed(model, st, where)
+        except ValueError as e:
+            raise SceneError(str(e)) from None
+        if not moved:
+            raise SceneError(f"{where}: frees no free parameter; free one (\"free\": \"all\").")
+        out.append(st)
+    return tuple(out)
+
+
+def stage_label(model, st: Solve) -> str:
+    what = "all free parameters" if st.free == "all" else ", ".join(st.free)
+    if st.fix:
+        what += " except " + ", ".join(st.fix)
+    return f"{what}, σ from the {'prediction' if st.sigma == 'prediction' else 'data'}"
+
+
+def run_stages(fitter, model, caps, noise, u0, solver: dict, *,
+               procedure: Sequence | None = None, verbose: bool = True):
+    """The stages of ``procedure`` (default :func:`default_procedure`) in turn, each from
+    where the last ended. Returns the final solve (:class:`difstar._lm.SolveResult`: its
+    ``u``, and its linearisation for the covariance), the per-stage records and the last
+    solve's ``args``."""
+    from difstar._fit import free_parts, make_args
+
+    procedure = default_procedure(model, solver) if procedure is None else tuple(procedure)
+    records = []
+    u, solved, args = u0, None, None
+    for st in procedure:
+        if isinstance(st, Restart):
+            t0 = time.perf_counter()
+            solved, tries = restart_response_curves(
+                fitter, model, solved, args, solver, parameter=st.parameter,
+                factors=st.factors, verbose=verbose)
+            u = solved.u
+            if tries:
+                kept = [t for t in tries if t["kept"]]
+                records.append({"label": "response-curve restarts", "tries": tries,
+                                "steps": sum(t["steps"] for t in tries),
+                                "result": f"{len(kept)} of {len(tries)} kept",
+                                "seconds": time.perf_counter() - t0, "compile_seconds": 0.0})
+            continue
+        label = stage_label(model, st)
+        moving = freed(model, st)
+        hold = tuple(k for k in model.free if k not in moving)
+        sigma_from = fitter.predict(u) if st.sigma == "prediction" else None
+        args = make_args(model, observed_data(model, caps, noise, sigma_from), u, hold=hold)
+        if verbose:
+            _log(f"difstar fit: stage {len(records) + 1}: {label}")
+            _log(f"{'iter':>6} {'loss':>14} {'step size':>11}  moved most")
+        last = [free_parts(model, u)]
+
+        def progress(k, loss, size, done, u_k):
+            if k == 1 and not records and "first_step" not in FIRST_STEP:
+                FIRST_STEP["first_step"] = seconds_since_process_start()
+                if verbose and FIRST_STEP["first_step"] is not None:
+                    _log(f"difstar fit: first step done {FIRST_STEP['first_step']:.1f} s "
+                         "after the command started")
+            if verbose:
+                parts = free_parts(model, u_k)
+                name, _ = moved_most(last[0], parts)
+                last[0] = parts
+                _log(f"{k:>6d} {loss:>14.6g} {size:>11.3g}  {name or '-'}"
+                     + ("  (done)" if done else ""))
+
+        max_steps = int(solver.get("max_steps", 100) if st.max_steps is None else st.max_steps)
+        res = fitter.solve(u, args, max_steps=max_steps, ftol=float(solver.get("ftol", 1e-6)),
+                           progress=progress)
+        u, solved = res.u, res
+        records.append({
+            "label": label, "held": list(hold), "steps": res.steps, "accepted": res.accepted,
+            "loss_start": res.loss_start, "loss_end": res.loss, "result": res.result,
+            "seconds": res.seconds, "compile_seconds": res.compile_seconds,
+        })
+        if verbose:
+            _log(f"difstar fit: stage {len(records)} {res.result} after {res.steps} steps, "
+                 f"{res.seconds:.1f} s (+ {res.compile_seconds:.1f} s compile)")
+    return solved, records, args
+
+
+def restart_response_curves(fitter, model, solved, args, solver: dict, *,
+                            parameter: str = "knee", factors=RESTART_FACTORS,
+                            verbose: bool = True):
+    """From the converged solve ``solved`` (a :class:`difstar._lm.SolveResult` on
+    ``args``), try each channel's ``parameter`` moved by each of ``factors`` (inside its
+    bounds), everything else as reached; keep any start that ends at a lower loss.
+    Returns (the best solve, tries). (The toe, pinned by the unsaturated dark pixels of
+    every capture, has not needed it.)
+
+    A restart first re-solves that channel's sensor parameters alone (φ0, toe, knee),
+    the optics held where ``solved`` put them (:meth:`difstar._fit.Fitter.solve_sensor`:
+    a step costs the sensor's arithmetic on the linear images predicted once, not the
+    PSF). The basin a restart looks for is the response curve's; only a restart that
+    ends lower there is then solved with everything free, from where it ended, and kept
+    if that ends lower than ``solved``."""
+    from difstar._fit import from_unconstrained, to_unconstrained
+
+    tries = []
+    spec = model.params.get(parameter)
+    if spec is None or not spec.free:
+        return solved, tries
+    max_steps = int(solver.get("max_steps", 100))
+    ftol = float(solver.get("ftol", 1e-6))
+    images = fitter.linear_images(solved.u)  # the optics' work, once
+    for ch in range(spec.size):
+        sensor_args = fitter.sensor_args(solved.u, args["data"], ch, images)
+        floor = fitter.sensor_loss(solved.u, sensor_args)  # = the loss at solved.u
+        for f in factors:
+            vals = {k: np.asarray(v) for k, v in from_unconstrained(model, solved.u).items()}
+            x = vals[parameter].copy()
+            span = spec.hi[ch] - spec.lo[ch]
+            x[ch] = np.clip(x[ch] * f, spec.lo[ch] + 1e-3 * span, spec.hi[ch] - 1e-3 * span)
+            vals[parameter] = x
+            res = fitter.solve_sensor(to_unconstrained(model, vals), sensor_args,
+                                      max_steps=max_steps, ftol=ftol)
+            steps = res.steps
+            # a lower basin (by more than χ² 1, a 1-σ change of one parameter, and than
+            # rounding): solve it whole
+            lower = floor - res.loss > max(0.5, 1e-6 * floor)
+            if lower:
+                res = fitter.solve(res.u, args, max_steps=max_steps, ftol=ftol)
+                steps += res.steps
+            # solved.loss: the loss at solved.u (no model evaluation to compile)
+            better = lower and res.loss < solved.loss * (1 - 1e-9)
+            tries.append({"parameter": f"{parameter}[{ch}]", "factor": f, "loss": res.loss,
+                          "kept": bool(better), "steps": steps})
+            if verbose:
+                _log(f"difstar fit: restart {parameter}[{'RGB'[ch] if spec.size == 3 else ch}]"
+                     f" × {f:g}: loss {res.loss:.7g} ({'lower: kept' if better else 'not lower'})")
+            if better:
+                solved = res
+                images = fitter.linear_images(solved.u)
+                sensor_args = fitter.sensor_args(solved.u, args["data"], ch, images)
+                floor = fitter.sensor_loss(solved.u, sensor_args)
+    return solved, tries

@@ -1,0 +1,93 @@
+"""The RAW fit's procedure (difstar._fit_procedure): the stages a manifest's
+solver.stages gives, as the image fit's types; the default one; the checks that refuse a
+procedure that cannot be right, naming the stage and field; and a written procedure run
+on a small synthetic fit, each solve moving only what it frees."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_fit import _model
+
+from difstar import _fit as F
+from difstar._fit_procedure import (
+    default_procedure,
+    procedure_of,
+    restart_response_curves,
+    run_stages,
+)
+from difstar.fitting import Repeat, Restart, Solve
+from difstar.io._scene import SceneError
+
+FREE = {"circumradius": (0.8e-3, 1.6e-3), "rotation": (0.0, 0.45),
+        "source_offset/c": (-2.0, 2.0), "phi0": (0.005, 0.03), "knee": (5.0, 200.0)}
+
+
+@pytest.fixture(scope="module")
+def small():
+    model = _model(FREE)
+    fitter = F.Fitter(model)
+    pred = fitter.predict(F.to_unconstrained(model))
+    names = [c.name for c in model.captures]
+    caps = {n: {"zeta": np.asarray(pred["c"][i]), "saturated": np.asarray(pred["c"][i]) >= 1.0,
+                "full_scale_dn": 16000.0} for i, n in enumerate(names)}
+    return model, fitter, caps
+
+
+def test_the_default_procedure_is_the_one_the_docs_write(small):
+    model, _, _ = small
+    written = [{"fix": ["toe", "knee"]}, {"sigma": "prediction"},
+               {"restart": {"parameter": "knee", "factors": [0.5, 2]}}]
+    assert procedure_of(model, {"stages": written}) == default_procedure(model, {})
+    assert default_procedure(model, {"reweight": 2})[1:3] == (Solve(sigma="prediction"),) * 2
+    held = _model()  # the knee fixed: no restarts
+    assert not any(isinstance(s, Restart) for s in default_procedure(held, {}))
+
+
+@pytest.mark.parametrize("stages, field", [
+    ([], "solver/stages"),
+    ([{"restart": {"parameter": "knee"}}], "solver/stages/0: a restart needs a solve"),
+    ([{"free": "all"}, {"restart": {"parameter": "toe"}}], "solver/stages/1/restart/parameter"),
+    ([{"free": "all"}, {"restart": {"parameter": "knee", "factors": [0]}}],
+     "solver/stages/1/restart/factors"),
+    ([{"free": ["circumradius"], "half": 4}], "solver/stages/0: \\['half'\\] apply to image"),
+    ([{"free": ["radius"]}], "solver/stages/0/free: 'radius' is not a parameter"),
+    ([{"fix": ["knee"], "free": ["knee"]}], "solver/stages/0: frees no free parameter"),
+    ([{"sigma": "model"}], "solver/stages/0/sigma"),
+    ([{"free": "all", "max_steps": 0}], "solver/stages/0/max_steps"),
+    ([Repeat(until={"rotation": 1e-3})], "solver/stages/0: a RAW fit's stage is a solve"),
+])
+def test_a_procedure_that_cannot_be_right_is_refused_naming_the_field(small, stages, field):
+    model, _, _ = small
+    with pytest.raises(SceneError, match=field):
+        procedure_of(model, {"stages": stages}, "m.json")
+
+
+def test_a_written_procedure_moves_only_what_each_solve_frees(small):
+    """From a start off in every free parameter: a first solve of φ0 alone holds the
+    geometry where it started; a second with φ0 fixed, σ from the prediction, moves the
+    rest; a restart of the knee is recorded per channel."""
+    model, fitter, caps = small
+    start = {k: np.asarray(model.params[k].value) for k in model.free}
+    start = start | {"circumradius": start["circumradius"] * 1.02, "rotation": 0.22,
+                     "phi0": start["phi0"] * 1.1}
+    u0 = F.to_unconstrained(model, start)
+    noise = {"gain_e_per_dn": 1.5, "read_noise_dn": 2.5}
+    procedure = (Solve(free=["phi0"], max_steps=8),
+                 Solve(fix=["phi0"], sigma="prediction", max_steps=30),
+                 Restart("knee", (0.5,)))
+    solved, records, _ = run_stages(fitter, model, caps, noise, u0, {"max_steps": 30},
+                                    procedure=procedure, verbose=False)
+    one, two, restarts = records
+    assert set(one["held"]) == set(model.free) - {"phi0"} and two["held"] == ["phi0"]
+    assert one["label"] == "phi0, σ from the data"
+    assert two["label"] == "all free parameters except phi0, σ from the prediction"
+    assert [t["parameter"] for t in restarts["tries"]] == ["knee[0]", "knee[1]", "knee[2]"]
+    assert two["loss_end"] < one["loss_end"] < one["loss_start"]
+    x = F.from_unconstrained(model, solved.u)
+    assert abs(float(x["circumradius"]) / float(start["circumradius"]) - 1) > 1e-3  # moved
+    # restarting a parameter that is not free tries nothing
+    assert restart_response_curves(fitter, _model(), solved, None, {}, parameter="toe",
+                                   verbose=False) == (solved, [])
+    assert jnp.all(jnp.isfinite(solved.u))
