@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import re
@@ -253,17 +254,22 @@ class ImageModel:
         unknown = set(per_capture) - set(self.params)
         if unknown:
             raise FitInputError(f"per_capture: unknown parameters {sorted(unknown)}.")
-        m = object.__new__(ImageModel)
-        m.__dict__ = dict(self.__dict__)
-        m.params = {}
+        params = {}
         for k, p in self.params.items():
             if k in per_capture:
-                m.params[k] = dataclasses.replace(p, free=False)
+                params[k] = dataclasses.replace(p, free=False)
                 for i in range(n):
-                    m.params[f"{k}@{i}"] = dataclasses.replace(p)
+                    params[f"{k}@{i}"] = dataclasses.replace(p)
             else:
-                m.params[k] = dataclasses.replace(p)
-        m.per_capture = tuple(per_capture)
+                params[k] = dataclasses.replace(p)
+        return self._copy(params=params, per_capture=tuple(per_capture))
+
+    def _copy(self, **changes) -> ImageModel:
+        """A copy with ``changes`` (attribute → value) set; its PSF plans and source
+        transforms are shared with this model's (they depend on neither the values nor
+        which parameters are free)."""
+        m = copy.copy(self)
+        m.__dict__.update(changes)
         return m
 
     def capture_values(self, v: Mapping[str, Any], i: int) -> dict:
@@ -293,26 +299,21 @@ class ImageModel:
 
     def with_values(self, values: Mapping[str, float], free: Sequence[str] | None = None):
         """A copy with new values (and, if given, only ``free`` left free)."""
-        m = object.__new__(ImageModel)
-        m.__dict__ = dict(self.__dict__)
-        m.params = {}
+        params = {}
         for k, p in self.params.items():
             q = dataclasses.replace(p, value=float(values.get(k, p.value)))
             if free is not None:
                 q.free = k in free and p.free
             if q.bounds is not None:
                 q.value = min(max(q.value, q.bounds[0]), q.bounds[1])
-            m.params[k] = q
-        return m
+            params[k] = q
+        return self._copy(params=params)
 
     def with_resampling(self, resampling: str | None) -> ImageModel:
         """A copy whose detector models a co-add resampled with ``resampling`` (null or
         'lanczos2' … 'lanczos5', as the constructor takes it); every parameter and plan
         kept (the kernel does not change the PSF's plan)."""
-        m = object.__new__(ImageModel)
-        m.__dict__ = dict(self.__dict__)
-        m.resampling = _resampling_order(resampling)
-        return m
+        return self._copy(resampling=_resampling_order(resampling))
 
     def _bound(self, name, pick):
         p = self.params[name]
