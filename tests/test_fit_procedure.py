@@ -62,6 +62,9 @@ def test_a_procedure_that_cannot_be_right_is_refused_naming_the_field(small, sta
     model, _, _ = small
     with pytest.raises(SceneError, match=field):
         procedure_of(model, {"stages": stages}, "m.json")
+    if stages:  # the loop checks a procedure given to it the same way, before any solve
+        with pytest.raises(SceneError, match=field.split(":")[0].replace("solver/", "")):
+            run_stages(None, model, {}, {}, None, {}, procedure=stages, verbose=False)
 
 
 def test_a_written_procedure_moves_only_what_each_solve_frees(small):

@@ -14,6 +14,7 @@ from difstar.fitting import (
     Light,
     Param,
     Repeat,
+    Restart,
     Solve,
     fit,
     obstructed_circle_pupil,
@@ -74,6 +75,8 @@ def small():
     (Repeat(until={"flux": 0.1}, max_rounds=0), "repeat needs 'until'"),
     (Solve(free=["flux"], half=-1), "half"),
     (Solve(free=["flux"], spikes={"r_mn": 3}), "unknown options"),
+    # a RAW fit's σ from the prediction
+    (Solve(free=["flux"], sigma="prediction"), "unknown keys \\['sigma'\\]"),
 ])
 def test_a_typed_stage_that_cannot_be_right_is_refused_as_its_dict_is(small, bad, match):
     model, data = small
@@ -81,3 +84,10 @@ def test_a_typed_stage_that_cannot_be_right_is_refused_as_its_dict_is(small, bad
     for stages in ([first, bad], [first.as_dict(), bad.as_dict()]):
         with pytest.raises(FitInputError, match=match):
             fit(model, data, stages=stages)
+
+
+def test_an_image_fit_refuses_a_raw_fits_restart(small):
+    """(A typed Restart is outside fit's type hint: its dict form is what could reach it.)"""
+    model, data = small
+    with pytest.raises(FitInputError, match="unknown keys \\['restart'\\]"):
+        fit(model, data, stages=[Solve(free=["flux"], max_steps=1), Restart().as_dict()])

@@ -187,13 +187,15 @@ def stage_label(model, st: Solve) -> str:
 
 def run_stages(fitter, model, caps, noise, u0, solver: dict, *,
                procedure: Sequence | None = None, verbose: bool = True):
-    """The stages of ``procedure`` (default :func:`default_procedure`) in turn, each from
-    where the last ended. Returns the final solve (:class:`difstar._lm.SolveResult`: its
-    ``u``, and its linearisation for the covariance), the per-stage records and the last
+    """The stages of ``procedure`` (default: ``solver["stages"]``, else
+    :func:`default_procedure`; checked by :func:`procedure_of`) in turn, each from where
+    the last ended. Returns the final solve (:class:`difstar._lm.SolveResult`: its ``u``,
+    and its linearisation for the covariance), the per-stage records and the last
     solve's ``args``."""
     from difstar._fit import free_parts, make_args
 
-    procedure = default_procedure(model, solver) if procedure is None else tuple(procedure)
+    procedure = procedure_of(model, solver if procedure is None
+                             else {**solver, "stages": list(procedure)}, "run_stages")
     records = []
     u, solved, args = u0, None, None
     for st in procedure:
