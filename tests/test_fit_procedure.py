@@ -51,6 +51,8 @@ def test_the_default_procedure_is_the_one_the_docs_write(small):
     ([{"free": "all"}, {"restart": {"parameter": "toe"}}], "solver/stages/1/restart/parameter"),
     ([{"free": "all"}, {"restart": {"parameter": "knee", "factors": [0]}}],
      "solver/stages/1/restart/factors"),
+    ([{"fix": ["knee"]}, {"restart": {"parameter": "knee"}}],
+     "solver/stages/1/restart/parameter: knee is held"),
     ([{"free": ["circumradius"], "half": 4}], "solver/stages/0: \\['half'\\] apply to image"),
     ([{"free": ["radius"]}], "solver/stages/0/free: 'radius' is not a parameter"),
     ([{"fix": ["knee"], "free": ["knee"]}], "solver/stages/0: frees no free parameter"),

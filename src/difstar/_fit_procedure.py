@@ -154,6 +154,11 @@ def procedure_of(model, solver: dict, src: str = "<manifest>") -> tuple:
                                          and f > 0 for f in st.factors):
                 raise SceneError(f"{where}/restart/factors: finite numbers > 0; got "
                                  f"{list(st.factors)}.")
+            last = next(s for s in reversed(out) if isinstance(s, Solve))
+            if st.parameter not in freed(model, last):
+                # its re-solves run on that solve's terms, where a held value cannot move
+                raise SceneError(f"{where}/restart/parameter: {st.parameter} is held by the "
+                                 "solve before it; restart a parameter that solve frees.")
             out.append(st)
             continue
         if not isinstance(st, Solve):
