@@ -96,3 +96,33 @@ def test_a_written_procedure_moves_only_what_each_solve_frees(small):
     assert restart_response_curves(fitter, _model(), solved, None, {}, parameter="toe",
                                    verbose=False) == (solved, [])
     assert jnp.all(jnp.isfinite(solved.u))
+
+
+@pytest.mark.slow
+def test_a_manifests_written_procedure_runs_and_every_free_parameter_has_its_error(tmp_path):
+    """The synthetic campaign on 64² regions (a manifest that extends it) with its own
+    solver.stages, the last of which holds the response curves: the fit runs those stages
+    and no others, and the standard errors are every free parameter's (the held ones' too,
+    from a Jacobian of all of them at the answer)."""
+    import json
+    from pathlib import Path
+
+    from difstar._fit_run import fit_manifest
+    from difstar.io._manifest import load_manifest
+
+    root = Path(__file__).resolve().parents[1]
+    small = tmp_path / "small.json"
+    small.write_text(json.dumps({
+        "extends": str(root / "fit" / "synthetic-paper-camera" / "manifest.json"),
+        "roi_size": [64, 64],
+        "solver": {"stages": [{"free": "all", "max_steps": 3},
+                              {"fix": ["toe", "knee"], "sigma": "prediction",
+                               "max_steps": 2}]}}))
+    res, model, *_ = fit_manifest(load_manifest(small), verbose=False)
+    labels = [s["label"] for s in res["convergence"]["stages"]]
+    assert labels == ["all free parameters, σ from the data",
+                      "all free parameters except toe, knee, σ from the prediction"]
+    assert res["convergence"]["stages"][1]["held"] == ["toe", "knee"]
+    for name in model.free:
+        se = np.asarray(res["parameters"][name]["stderr"])
+        assert np.all(np.isfinite(se)) and np.all(se > 0), (name, se)

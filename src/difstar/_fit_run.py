@@ -261,6 +261,12 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
                                       procedure=procedure, verbose=verbose)
     u = solved.u
     t0 = time.perf_counter()
+    if not np.all(np.asarray(args["active"]) == 1):
+        # a written procedure's last solve held some parameters: the standard errors are
+        # every free parameter's, from a Jacobian of them all at the answer
+        from difstar._fit import make_args
+
+        args, solved = make_args(model, args["data"], u), None
     cov, se, diag = fitter.covariance(u, args, solved)
     t_cov = time.perf_counter() - t0
     x = _values(model, u)
