@@ -32,6 +32,7 @@ STAGES = [
     Hop(flip=["z6", ["z4", "z11"]], stages=1),
     Hop(set={"z4": 0.0}, stages=3),
     Repeat(until={"rotation": 0.002}, max_rounds=8),
+    Restart("toe", (0.5,)),
 ]
 
 

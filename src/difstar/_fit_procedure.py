@@ -107,11 +107,11 @@ def _names(model, given, where: str) -> set[str]:
     name); a name that is no parameter of the model is refused."""
     out = set()
     for q in given:
-        hit = {k for k in model.free if k == q or k.split("/", 1)[0] == q}
-        if not hit and not any(k == q or k.split("/", 1)[0] == q for k in model.params):
+        named = {k for k in model.params if k == q or k.split("/", 1)[0] == q}
+        if not named:
             raise ValueError(f"{where}: {q!r} is not a parameter of the fit; known: "
                              f"{sorted(model.params)}.")
-        out |= hit
+        out |= named & set(model.free)
     return out
 
 
@@ -139,7 +139,7 @@ def procedure_of(model, solver: dict, src: str = "<manifest>") -> tuple:
         where = f"{src}: field solver/stages/{i}"
         try:
             if isinstance(st, dict):
-                st = parse_stage(st) if "restart" not in st else Restart(**st["restart"])
+                st = parse_stage(st)
         except TypeError as e:
             raise SceneError(f"{where}: {e}") from None
         if isinstance(st, Restart):
@@ -183,7 +183,7 @@ def procedure_of(model, solver: dict, src: str = "<manifest>") -> tuple:
     return tuple(out)
 
 
-def stage_label(model, st: Solve) -> str:
+def stage_label(st: Solve) -> str:
     what = "all free parameters" if st.free == "all" else ", ".join(st.free)
     if st.fix:
         what += " except " + ", ".join(st.fix)
@@ -217,7 +217,7 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *,
                                 "result": f"{len(kept)} of {len(tries)} kept",
                                 "seconds": time.perf_counter() - t0, "compile_seconds": 0.0})
             continue
-        label = stage_label(model, st)
+        label = stage_label(st)
         moving = freed(model, st)
         hold = tuple(k for k in model.free if k not in moving)
         sigma_from = fitter.predict(u) if st.sigma == "prediction" else None

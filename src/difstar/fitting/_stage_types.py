@@ -140,7 +140,10 @@ def stage_dicts(stages: Sequence) -> list:
 
 
 def parse_stage(st: Mapping) -> Stage:
-    """A checked stage's dict form as its type."""
+    """A checked stage's dict form as its type (a restart's unknown keys raise
+    TypeError)."""
+    if st.get("restart") is not None:
+        return Restart(**st["restart"])
     if st.get("hop") is not None:
         h = st["hop"]
         return Hop(name=h.get("name"), offsets=tuple(h.get("offsets", ())),

@@ -62,10 +62,9 @@ def _check_stage_keys(si: int, st: Any) -> None:
             raise FitInputError(f"fit: stage {si}: {key} has unknown options {bad}; "
                                 f"known: {sorted(opts)}.")
 
-def _check_repeat(model: ImageModel, si: int, r: Any, n_solving: int) -> tuple:
-    """A ``repeat`` stage's (stages, until, max_rounds), its defaults filled in; refuses
-    one that cannot be right, naming what to fix (a per-capture name stands for every
-    capture's own)."""
+def _check_repeat(model: ImageModel, si: int, r: Any, n_solving: int) -> None:
+    """Refuses a ``repeat`` stage that cannot be right, naming what to fix (a
+    per-capture name stands for every capture's own)."""
     given, r = r, (r if isinstance(r, Mapping) else {})
     k, until, max_rounds = r.get("stages", 2), r.get("until"), r.get("max_rounds", 6)
     bad = [] if isinstance(until, Mapping) and until else ["until (missing or empty)"]
@@ -89,7 +88,6 @@ def _check_repeat(model: ImageModel, si: int, r: Any, n_solving: int) -> tuple:
                             f"stages <= {n_solving} (the solving stages before it) and "
                             f"1 <= max_rounds <= 1000; got {given!r} "
                             f"(bad: {', '.join(bad)}).")
-    return k, dict(until), max_rounds
 
 #: the most combinations of ``starts`` (each one a fit of the first stage)
 MAX_STARTS = 1000
@@ -290,11 +288,11 @@ def _check_solving_stage(model: ImageModel, datas: Sequence[FitData], si: int, s
             _check_options(si, key, st[key])
 
 def _check_fit_inputs(model: ImageModel, datas: Sequence[FitData], stages: Sequence,
-                      *, starts=None, max_steps=100, rtol=1e-6) -> dict:
+                      *, starts=None, max_steps=100, rtol=1e-6) -> None:
     """Every mistake in a fit's stages and starts that can be found before any fitting
     (:func:`fit` and :func:`load_manifest` call it; ``model`` already made for the
-    captures): returns the repeat stages' (stages, until, max_rounds) by index. Raises
-    :class:`FitInputError` (an :class:`_InputAt` naming the stage and key)."""
+    captures). Raises :class:`FitInputError` (an :class:`_InputAt` naming the stage and
+    key)."""
     n_cap = len(datas)
     if not model.free:
         raise _InputAt(("params",), "no parameter is free; set free: true on at least one.",
@@ -308,13 +306,12 @@ def _check_fit_inputs(model: ImageModel, datas: Sequence[FitData], stages: Seque
     if not stages:
         raise _InputAt(("stages",), "is empty: give one stage or more (e.g. [{'free': "
                        "'all'}]), or leave stages out.")
-    repeats = {}
     n_solving = 0
     for si, st in enumerate(stages):
         try:
             _check_stage_keys(si, st)
             if st.get("repeat") is not None:
-                repeats[si] = _check_repeat(model, si, st["repeat"], n_solving)
+                _check_repeat(model, si, st["repeat"], n_solving)
         except _InputAt:
             raise
         except FitInputError as e:
@@ -356,7 +353,6 @@ def _check_fit_inputs(model: ImageModel, datas: Sequence[FitData], stages: Seque
                                    f"larger than stage {si}'s padded window ({hp} × {wp}); "
                                    "crop it or raise detector pad.")
     _check_fit_memory(model, datas)
-    return repeats
 
 #: the fitted Jacobian's memory over :func:`~difstar._psf.psf_bytes` per free parameter
 #: (jacfwd carries every intermediate once per parameter, and XLA keeps more): calibrated
