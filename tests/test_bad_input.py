@@ -223,6 +223,38 @@ def test_huge_crop_is_refused_before_allocation(work, capsys):
     assert 8 <= fit < 100000
 
 
+def test_numbers_float32_cannot_hold_are_refused_naming_the_field(work, capsys):
+    """Found by mutating every field of a scene: in float32, 1e300 m became infinity
+    (the message named "inf", a value the user never gave, after a NumPy overflow
+    warning) and 1e-300 m became 0; in float64, a crop of 1e300 px or a pitch of
+    1e-300 m made a cost estimate too large for a float (an internal error)."""
+    import jax
+
+    for path, value, field in ((("camera", "lens", "focal_length"), 1e300,
+                                "camera/lens/focal_length"),
+                               (("camera", "sensor", "pixel_pitch"), 1e-300,
+                                "camera/sensor/pixel_pitch")):
+        scene = write_text(work / "s.json", json.dumps(doc_with(path, value)))
+        with jax.enable_x64(False):  # as the command runs without --x64
+            err = refused(["predict", scene, "--out", work / "out"], capsys, work, field,
+                          "float32", "--x64")
+        assert "RuntimeWarning" not in err
+    for path, value in ((("camera", "sensor", "pixel_pitch"), 1e-300),
+                        (("grid", "crop", 0), 1e300)):
+        doc = doc_with(path, value)
+        scene = write_text(work / "s.json", json.dumps(doc))
+        err = refused(["--x64", "predict", scene, "--out", work / "out"], capsys, work,
+                      "memory")
+        assert len(err) < 400  # no number of 600 digits
+
+
+def test_fmt_bytes_takes_any_size():
+    from difstar._validate import fmt_bytes
+
+    assert fmt_bytes(3.2e9) == "3.2 GB"
+    assert fmt_bytes(10**600 * 16) == "1.60e601 bytes"
+
+
 def test_source_far_outside_the_frame_is_refused(work, capsys):
     doc = small_doc()
     doc["scene"]["sources"][0]["position"] = [1e4, 0.0]

@@ -183,6 +183,19 @@ BAD = [
                                                       "bounds": [3, 0]},
      ["field params/jitter", "lo < hi"]),
     ("halo 2", ("params", "halo"), 2.0, ["field params/halo", "<= 1"]),
+    ("struts wider than the pupil", ("params", "strut_width"), 1e300,
+     ["field params/strut_width", "block the whole pupil"]),
+    ("a second halo not declared", ("params", "halo2"), 0.1,
+     ["field params/halo2", "detector/halos"]),
+    ("a declared halo's fraction 2", ("params", "scatter"), 2.0,
+     ["field params/scatter", "[0, 1]"]),
+    ("halos a name", ("detector", "halos"), "halo", ["field detector/halos", "array"]),
+    ("halos twice", ("detector", "halos"), ["halo", "halo"], ["field detector/halos",
+                                                              "twice"]),
+    ("a halo named as another parameter", ("detector", "halos"), ["halo", "x0"],
+     ["field detector/halos", "x0"]),
+    ("a halo's width 0", ("detector", "halos"), [{"name": "halo", "width": 0}],
+     ["field detector/halos/0/width"]),
     ("max_steps 0", ("max_steps",), 0, ["field max_steps", ">= 1"]),
     ("max_steps 2.7", ("max_steps",), 2.7, ["field max_steps", "integer"]),
     ("stage max_steps 0", ("stages", 1, "max_steps"), 0, ["field stages/1/max_steps"]),
@@ -255,6 +268,8 @@ def test_bad_manifest_is_refused_naming_the_field(work, capsys, name, path, valu
         man.pop("starts")
     if name == "zernike not in nm":
         man["zernike"] = [4]
+    if name == "a declared halo's fraction 2":
+        man["detector"]["halos"] = ["halo", "scatter"]
     refused_fit_image(work, capsys, *fields, man=man)
 
 

@@ -243,14 +243,17 @@ def test_every_parameter_has_a_unit(kind):
     copies) has one, and the documented ones are right (ImageModel's and the builders'
     docstrings: z<j> nm RMS, angles in degrees, lengths in metres, fractions 1)."""
     model = ImageModel(BUILDERS[kind](), {}, light=Light.monochromatic(LAM),
-                       zernike=(4, 11), source="disc", response=True)
-    names = [*model.params, "x0@1", "z4@2"]
-    assert all(parameter_unit(k) for k in names), [k for k in names if not parameter_unit(k)]
+                       zernike=(4, 11), source="disc", response=True,
+                       halos=["halo", "diffusion"])
+    names = [*model.params, "x0@1", "z4@2", "diffusion@1"]
+    assert all(parameter_unit(k, model) for k in names), [
+        k for k in names if not parameter_unit(k, model)]
     documented = {"z4": "nm RMS", "z11@2": "nm RMS", "rotation": "deg", "halo": "1",
                   "strut_spread": "deg", "strut_tilt": "deg", "flat_to_flat": "m",
-                  "gap": "m", "incoherent": "1", "halo2": "1", "iris_radius": "m",
-                  "radius": "m", "pixel_scale": "arcsec per data px"}
+                  "gap": "m", "incoherent": "1", "diffusion": "1", "iris_radius": "m",
+                  "radius": "m", "pixel_scale": "arcsec per data px",
+                  "diffusion_width": "data px"}
     for k, unit in documented.items():
-        assert parameter_unit(k).split(",")[0] == unit, k
+        assert parameter_unit(k, model).split(",")[0] == unit, k
     with pytest.raises(KeyError, match="no unit for 'bogus'"):
         parameter_unit("bogus")

@@ -18,6 +18,7 @@ import pytest
 from difstar.fitting import (
     FitData,
     FitInputError,
+    Halo,
     Hop,
     ImageModel,
     Light,
@@ -237,11 +238,12 @@ def test_jwst_manifest_loads_and_model_matches_data_shape():
     model, data, opts = load_manifest(path)
     assert data.image.shape == (91, 91)
     assert {"rotation", "jitter", "halo"} <= set(model.free)
-    assert "halo2" not in model.free  # one blur: see fit/jwst-nircam/README.md
+    assert [h.name for h in model.halos] == ["halo"]  # one: see fit/jwst-nircam/README.md
     assert opts["stages"]
     two_halos, _, _ = load_manifest(ROOT / "fit" / "jwst-nircam" / "variants" /
                                     "two-halos.json")
     assert {"halo", "halo2"} <= set(two_halos.free)
+    assert [(h.name, h.width) for h in two_halos.halos] == [("halo", 4.0), ("halo2", 1.5)]
     with_wavefront, _, _ = load_manifest(ROOT / "fit" / "jwst-nircam" / "variants" /
                                          "segment-wavefront.json")
     assert "z4" in with_wavefront.free
@@ -253,15 +255,15 @@ def test_jwst_manifest_loads_and_model_matches_data_shape():
 
 def test_jwst_model_mirrored_is_the_mirror_image():
     """An exact symmetry, not the code's own output: the JWST pupil is mirror-symmetric
-    about its vertical axis, so the campaign's model (with a wavefront and both
-    halos) with the pupil's rotation, the
+    about its vertical axis, so the campaign's model (with a wavefront and its
+    halo) with the pupil's rotation, the
     upper strut's tilt, the centre's x and the Zernike terms odd in x (Noll 5, 8, 10)
     negated is the left-right mirror of the image. Fails if the pupil, the struts, the
     shift or a Zernike term's orientation (e.g. x and y swapped) breaks the symmetry."""
     model, _, _ = load_manifest(ROOT / "fit" / "jwst-nircam" / "variants" /
                                 "segment-wavefront.json")  # the campaign's model with a wavefront
     v = dict(model.values())
-    v.update(halo2=0.4, halo2_width=1.8, rotation=0.7, strut_tilt=2.0, x0=0.31, y0=-0.22,
+    v.update(halo=0.4, halo_width=1.8, rotation=0.7, strut_tilt=2.0, x0=0.31, y0=-0.22,
              z4=160.0, z5=30.0, z6=-55.0, z7=-12.0, z8=-9.0, z9=-5.0, z10=6.0, z11=170.0)
     odd = ("rotation", "strut_tilt", "x0", "z5", "z8", "z10")
     w = {k: (-x if k in odd else x) for k, x in v.items()}
@@ -1056,7 +1058,7 @@ def test_lanczos_transfer_is_the_mean_of_resamplings(a):
     from PIL import Image
     from scipy.integrate import quad
 
-    from difstar.fitting._model import lanczos_kernel, lanczos_transfer
+    from difstar.fitting._detector import lanczos_kernel, lanczos_transfer
 
     h = w = 41
     c, s = 20.0, 2.0
@@ -1147,6 +1149,10 @@ def test_noise_limited_errors_match_weighted_linear_least_squares(synthetic):
         noise_limited_errors(model, d, vals, [s1[:5]])
 
 
+#: two halos, as the JWST campaign's two-halo variants name them
+TWO_HALOS = (Halo("halo", 4.0), Halo("halo2", 1.5))
+
+
 @pytest.mark.parametrize("which", ["halo", "halo2"])
 def test_halos_are_gaussian_mixtures_against_scipy(which):
     """Each halo moves a fraction ``a`` of the light into a Gaussian of σ ``width`` px:
@@ -1156,7 +1162,7 @@ def test_halos_are_gaussian_mixtures_against_scipy(which):
     stays."""
     from scipy.ndimage import gaussian_filter
 
-    kw = dict(light=Light.monochromatic(3.6e-6))
+    kw = dict(light=Light.monochromatic(3.6e-6), halos=TWO_HALOS)
     params = {"pixel_scale": 0.6, "flux": 1.0}
     h, p = 31, 10
     plain = ImageModel(obstructed_circle_pupil(), params, pad=0, **kw)((h + 2 * p, h + 2 * p))
@@ -1177,6 +1183,64 @@ def test_halos_are_gaussian_mixtures_against_scipy(which):
     full = ImageModel(obstructed_circle_pupil(), params | {which: a, f"{which}_width": s},
                       pad=0, **kw)((h + 2 * p, h + 2 * p))
     assert full.sum() == pytest.approx(plain.sum(), rel=1e-12)
+
+
+def test_a_list_of_named_halos_against_scipy():
+    """Halos are a list, each under the name its user gives: three of them (scattered
+    light, charge diffusion, a co-add's misregistration) are the three Gaussian mixtures
+    of scipy.ndimage.gaussian_filter applied one after the other, to 1e-9 of the peak;
+    the default model has one halo (``halo``) and none is numbered for the user."""
+    from scipy.ndimage import gaussian_filter
+
+    kw = dict(light=Light.monochromatic(3.6e-6))
+    params = {"pixel_scale": 0.6, "flux": 1.0}
+    h, p = 31, 12
+    # σ ≥ 2.5 px (a sampled Gaussian's spectrum is the continuous one's to 1e-13 at the
+    # Nyquist frequency, exp(−π² σ² / 2)) and 12 σ within the window (scipy's wrap)
+    halos = [{"name": "scatter", "width": 3.0}, "diffusion", Halo("wings", 2.5)]
+    plain = ImageModel(obstructed_circle_pupil(), params, pad=0, halos=[],
+                       **kw)((h + 2 * p, h + 2 * p))
+    model = ImageModel(obstructed_circle_pupil(), params | {
+        "scatter": 0.1, "diffusion": 0.3, "diffusion_width": 3.5, "wings": 0.2}, pad=p,
+        halos=halos, **kw)
+    assert [q.name for q in model.halos] == ["scatter", "diffusion", "wings"]
+    assert model.params["scatter_width"].value == 3.0
+    assert model.halos[1].width == 4.0 and model.params["diffusion_width"].value == 3.5
+    assert model.units["wings_width"] == "data px, Gaussian sigma"
+    want = plain
+    for a, s in ((0.1, 3.0), (0.3, 3.5), (0.2, 2.5)):
+        want = (1 - a) * want + a * gaussian_filter(want, s, mode="wrap", truncate=12.0)
+    got = model((h, h))
+    assert np.abs(got - want[p:p + h, p:p + h]).max() < 1e-9 * plain.max()
+    default = ImageModel(obstructed_circle_pupil(), params, **kw)
+    assert [q.name for q in default.halos] == ["halo"]
+    assert not any(k.startswith("halo2") for k in default.params)
+    with pytest.raises(FitInputError, match="unknown parameters.*halo2"):
+        ImageModel(obstructed_circle_pupil(), {"halo2": 0.1}, **kw)
+
+
+@pytest.mark.parametrize("halos, match", [
+    (["halo", "halo"], "given twice"),
+    (["x0"], "are taken"),
+    (["a", "a_width"], "are taken"),
+    (["z4"], "Zernike"),
+    (["2b"], "letters, digits"),
+    ([{"name": "h", "width": 0.0}], "width 0.0"),
+    ([{"name": "h", "width": float("nan")}], "finite"),
+    ([{"name": "h", "sigma": 2.0}], "name, width"),
+    ("halo", "a list of halos"),
+])
+def test_bad_halos_are_refused(halos, match):
+    with pytest.raises(FitInputError, match=match):
+        ImageModel(obstructed_circle_pupil(), {}, light=Light.monochromatic(3.6e-6),
+                   halos=halos)
+
+
+def test_halo_fraction_outside_0_1_is_refused():
+    for params in ({"halo": 1.5}, {"halo": {"value": 0.1, "free": True, "bounds": [0, 2]}},
+                   {"halo_width": -1.0}):
+        with pytest.raises(FitInputError, match="halo"):
+            ImageModel(obstructed_circle_pupil(), params, light=Light.monochromatic(3.6e-6))
 
 
 def _assert_matches_central_differences(jac, img, base, names, x0):
@@ -1200,7 +1264,8 @@ def test_image_model_jacobian_matches_finite_differences():
     import jax.numpy as jnp
 
     model = ImageModel(obstructed_circle_pupil(), {"pixel_scale": 0.6},
-                       light=Light.monochromatic(3.6e-6), pad=6, resampling="lanczos3")
+                       light=Light.monochromatic(3.6e-6), pad=6, resampling="lanczos3",
+                       halos=TWO_HALOS)
     names = ["jitter", "halo", "halo_width", "halo2", "halo2_width", "rotation", "x0"]
     base = model.values() | {"jitter": 0.4, "halo": 0.2, "halo_width": 3.0, "halo2": 0.3,
                              "halo2_width": 1.5, "rotation": 3.0, "x0": 0.2}

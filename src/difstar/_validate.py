@@ -506,6 +506,11 @@ def check_pupil_cost(pupil, field: str = "pupil") -> int:
 
 
 def fmt_bytes(b) -> str:
+    """``b`` bytes for a reader: "3.2 GB"; any size, an int beyond a float's range too
+    (a cost estimate for absurd inputs)."""
+    if b >= 1e15:
+        d = str(int(b))  # exact for ints of any size
+        return f"{d[0]}.{d[1:3]}e{len(d) - 1} bytes"
     for unit, s in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
         if b >= s:
             return f"{b / s:.3g} {unit}"

@@ -16,10 +16,13 @@ fixed or free (with bounds):
   (the PSF's integral over the whole plane); the shift is a wavefront tilt, exact in
   Fraunhofer optics;
 - detector: pixel integration at the data's pitch (``pixel_scale``, arcsec per data
-  pixel; any z_image / pitch with the same angle), a native pixel for drizzled or
-  oversampled data (a box ``native_pixel`` data pixels wide), a Gaussian blur ``jitter``
-  (σ in data pixels: pointing jitter, charge diffusion, resampling) and a constant
-  ``background``;
+  pixel; any z_image / pitch with the same angle), then its layers (classes in
+  ``_detector``, each with its named parameters and its transfer function): a Gaussian
+  blur (:class:`Jitter`, σ ``jitter`` in data pixels: pointing jitter, charge
+  diffusion), a list of halos (:class:`Halo`, each a fraction ``<name>`` of the light in a
+  Gaussian of σ ``<name>_width``; default one, ``halo``), a native pixel for drizzled or
+  oversampled data (:class:`NativePixel`), a co-add's resampling kernel
+  (:class:`Resampling`), and a constant ``background``;
 - data (:class:`FitData`): an image, per-pixel σ (given or from a noise model: read
   noise, Poisson with a gain, a relative floor), a mask of invalid pixels and a region of
   interest.
@@ -36,8 +39,9 @@ docs/fitting.md): :func:`load_manifest` parses a manifest into an :class:`ImageM
 its :class:`FitData` and the stages; :func:`fit` runs them; :func:`run_fit_image` does
 what the command does (fit a manifest and write its results into a new folder). Its
 modules, in the order they build on one another: ``_params`` (:class:`Param`), ``_parts``
-(pupil builders, :class:`Light`), ``_data`` (:class:`FitData`, :class:`Noise`), ``_model``
-(:class:`ImageModel`), ``_solve`` (one solve, its errors, :class:`FitResult`),
+(pupil builders, :class:`Light`), ``_detector`` (the detector's layers), ``_data``
+(:class:`FitData`, :class:`Noise`), ``_model`` (:class:`ImageModel`), ``_solve`` (one
+solve, its errors, :class:`FitResult`),
 ``_analysis`` (χ² slices, rough starts, spike angles), ``_stage_types`` (a procedure's
 stages as types: :class:`Solve`, :class:`Hop`, :class:`Repeat`, :class:`Restart`),
 ``_stages`` (the checks of a fit's stages), ``_auto`` (:func:`auto_stages`: the stages
@@ -56,6 +60,11 @@ from ._data import data_intensity as data_intensity
 from ._data import fainter_copy as fainter_copy
 from ._data import noise_from_residuals as noise_from_residuals
 from ._data import reject_outliers as reject_outliers
+from ._detector import DetectorLayer as DetectorLayer
+from ._detector import Halo as Halo
+from ._detector import Jitter as Jitter
+from ._detector import NativePixel as NativePixel
+from ._detector import Resampling as Resampling
 from ._manifest import load_manifest as load_manifest
 from ._manifest import resolve_data_path as resolve_data_path
 from ._model import ImageModel as ImageModel
@@ -85,8 +94,9 @@ from ._studies import noise_limit as noise_limit
 from ._studies import shifted_image as shifted_image
 
 __all__ = [
-    "FitData", "FitInputError", "FitResult", "Hop", "ImageModel", "Light", "Noise", "Param",
-    "PupilBuilder", "Repeat", "Restart", "Solve", "auto_stages", "chi2_at", "chi2_slice",
+    "DetectorLayer", "FitData", "FitInputError", "FitResult", "Halo", "Hop", "ImageModel",
+    "Jitter", "Light", "NativePixel", "Noise", "Param", "PupilBuilder", "Repeat", "Resampling",
+    "Restart", "Solve", "auto_stages", "chi2_at", "chi2_slice",
     "contaminated_image", "data_intensity",
     "fainter_copy", "fit", "fit_changed_copy", "fit_contaminated_copy", "fit_fainter_copy",
     "fit_joint", "fit_shifted_copy", "iris_pupil", "jwst_pupil", "load_manifest", "model_images",

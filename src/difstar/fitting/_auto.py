@@ -11,7 +11,8 @@ from ._model import ImageModel
 from ._params import ARCSEC
 
 #: the parameters that place the star and shape its core, fitted first on a small window
-CORE = ("x0", "y0", "flux", "background", "jitter", "halo")
+#: (and each halo's fraction)
+CORE = ("x0", "y0", "flux", "background", "jitter")
 #: the relative mismatch of the model that σ carries once the noise is estimated from
 #: the residual (the spike stages' weights): 3 % of the intensity
 MISMATCH_FLOOR = 0.03
@@ -52,7 +53,8 @@ def auto_stages(model: ImageModel, data) -> list[dict]:
     With ``r_edge`` the largest radius inside the window and ``core`` = 10 λ/D (at least
     8 pixels, at most r_edge / 2):
 
-    1. the star's place, flux, background and blur (those of :data:`CORE` that are free)
+    1. the star's place, flux, background and blur (those of :data:`CORE` and the
+       halos' fractions that are free)
        on the central (2 core + 1)² pixels, where the spikes weigh little — only where
        the window is larger than that;
     2. if ``rotation`` is free: a scan of the rotation over its bounds (± 20° where it
@@ -84,7 +86,7 @@ def auto_stages(model: ImageModel, data) -> list[dict]:
     res = resolution_px(model)
     core = int(min(max(8, math.ceil(10 * res)), max(r_edge // 2, 1)))
     stages: list[dict] = []
-    core_free = [q for q in CORE if q in free]
+    core_free = [q for q in (*CORE, *(h.name for h in model.halos)) if q in free]
     if core_free and 2 * core + 1 < n:
         stages.append({"free": core_free, "half": core})
     rotation = "rotation" in free

@@ -24,10 +24,11 @@ import numpy as np
 
 from ._params import ARCSEC
 
-#: the parameters one PSF at the star's centre serves: a move of the star is a phase ramp
-#: of its spectrum, the rest act after the optics
-AFTER_OPTICS = frozenset({"x0", "y0", "flux", "background", "jitter", "halo", "halo_width",
-                          "halo2", "halo2_width", "source_radius", "white", "toe", "knee"})
+#: the parameters one PSF at the star's centre serves besides the detector layers' (the
+#: jitter's, the halos'): a move of the star is a phase ramp of its spectrum, the rest
+#: act after the optics
+AFTER_OPTICS = frozenset({"x0", "y0", "flux", "background", "source_radius", "white", "toe",
+                          "knee"})
 
 
 def optics_fixed(model, free: Sequence[str]) -> bool:
@@ -35,8 +36,9 @@ def optics_fixed(model, free: Sequence[str]) -> bool:
     they are, so that :func:`centred_psf` serves all its steps: every name acts after
     the optics, and nothing after them is defined on the data's pixels alone (a
     co-add's resampling kernel, a source image)."""
+    after = AFTER_OPTICS.union(*(layer.parameters for layer in model.layers))
     return (bool(free) and not model.resampling and isinstance(model.source, str)
-            and all(k.split("@")[0] in AFTER_OPTICS for k in free))
+            and all(k.split("@")[0] in after for k in free))
 
 
 def fine_factor(model, light=None) -> int:

@@ -15,7 +15,8 @@ import numpy as np
 
 from ._auto import auto_stages
 from ._data import FitData, Noise
-from ._model import COMMON, RESPONSE, SOURCE_DISC, ImageModel
+from ._detector import halos_of
+from ._model import ImageModel, parameter_defaults
 from ._params import FitInputError, Param, _as_param
 from ._parts import BUILDERS, Light, PupilBuilder
 from ._stages import _check_fit_inputs, _InputAt
@@ -299,8 +300,9 @@ def _range_of(p: Param) -> tuple[float, float]:
     return min(vals), max(vals)
 
 def _check_geometry(kind: str, model: ImageModel, src: str) -> None:
-    """An obstruction that covers the whole pupil (all its light blocked: the model is
-    not finite) is refused, naming the field, before any model is computed."""
+    """An obstruction that covers the whole pupil, or struts as wide as its diameter (all
+    its light blocked: the model is not finite, or a fit of nothing), are refused, naming
+    the field, before any model is computed."""
     p = model.params
     if kind == "circle":
         outer, what = _range_of(p["radius"])[0], "the pupil's radius"
@@ -316,22 +318,46 @@ def _check_geometry(kind: str, model: ImageModel, src: str) -> None:
                             f"{obs:g} m (its value or bound) covers the whole pupil ({what} "
                             f"at {outer:g} m): give an obstruction (and bounds) below "
                             f"{outer:g} m.")
+    strut = _range_of(p["strut_width"])[1] if "strut_width" in p else 0.0
+    if not strut < 2 * outer:  # a strut from the centre that wide covers every point
+        raise FitInputError(f"{src}: field params/strut_width: struts {strut:g} m wide (the "
+                            f"value or bound) block the whole pupil ({what} at {outer:g} m): "
+                            f"give a width (and bounds) below {2 * outer:g} m, in metres.")
+
+def _halos(det: Mapping, src: str):
+    """The manifest's ``detector.halos`` as :class:`Halo` layers (default: one, ``halo``)."""
+    try:
+        return halos_of(det.get("halos"))
+    except FitInputError as e:
+        raise FitInputError(f"{src}: field detector/{e}") from None
+
 
 def _params_of(man: Mapping, kind: str, builder: PupilBuilder, auto: Mapping,
                src: str) -> dict:
     """The manifest's ``params``, each checked and turned into a :class:`Param` (the
     ``"auto"`` and ``"header"`` values and their relative bounds filled in), with errors
     naming the parameter's field."""
-    known = (set(COMMON) | set(builder.defaults)
-             | {f"z{j}" for j in man.get("zernike", ())}
-             | (set(SOURCE_DISC) if man.get("source") == "disc" else set())
-             | (set(RESPONSE) if man.get("detector", {}).get("response") else set()))
+    det = man.get("detector", {})
+    try:
+        known = set(parameter_defaults(builder, zernike=man.get("zernike", ()),
+                                       source=man.get("source", "point"),
+                                       response=bool(det.get("response", False)),
+                                       halos=_halos(det, src)))
+    except FitInputError as e:
+        msg = str(e)
+        raise FitInputError(msg if msg.startswith(src) else f"{src}: field detector/{msg}"
+                            ) from None
     out = {}
     for k, spec in man["params"].items():
         at = f"{src}: field params/{k}"
         if k not in known:
+            halo = k.removesuffix("_width")
+            more = (f" (a halo of its own: name it in the field detector/halos, e.g. "
+                    f"[\"halo\", \"{halo}\"])" if k.endswith("_width")
+                    or k.startswith("halo") or f"{k}_width" in man["params"] else "")
             raise FitInputError(f"{at}: not a parameter of this model (pupil {kind!r}, its "
-                                f"zernike terms, source and detector); known: {sorted(known)}.")
+                                f"zernike terms, source and detector){more}; known: "
+                                f"{sorted(known)}.")
         spec = dict(spec) if isinstance(spec, Mapping) else spec
         if isinstance(spec, dict):
             rel = [q for q in ("bounds", "bounds_relative", "bounds_about") if q in spec]
@@ -461,7 +487,7 @@ def load_manifest(path, *, transform=None):
                            source=_load_source(man.get("source", "point"), path.parent,
                                                source=src, inputs=inputs),
                            response=bool(det.get("response", False)),
-                           resampling=det.get("resampling"))
+                           resampling=det.get("resampling"), halos=_halos(det, src))
     except FitInputError as e:  # the parameter it names, where it names one
         msg = str(e).removeprefix("ImageModel: ")
         m = re.match(r"(\w+) = ", msg)

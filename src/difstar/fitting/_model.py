@@ -19,6 +19,7 @@ from .._pupil import distorted
 from .._sensor import response_curve
 from .._zernike import Zernike
 from ._centred import fine_factor, pixels_from_fine
+from ._detector import Halo, Jitter, NativePixel, Resampling, halos_of
 from ._params import _PITCH, ARCSEC, FitInputError, _as_param
 from ._parts import Light, PupilBuilder
 
@@ -35,10 +36,9 @@ class _Shifted(eqx.Module):
         return w if self.zernike is None else w + self.zernike.opd(x, y)
 
 #: Parameters every model has, with defaults (SI units except where noted).
+#: The detector's layers add theirs (:mod:`._detector`: ``jitter``, each halo's).
 COMMON = {"rotation": 0.0, "x0": 0.0, "y0": 0.0, "flux": 1.0, "background": 0.0,
-          "pixel_scale": 0.03, "jitter": 0.0, "halo": 0.0, "halo_width": 4.0,
-          "halo2": 0.0, "halo2_width": 1.5,
-          "shear": 0.0, "aspect": 0.0}
+          "pixel_scale": 0.03, "shear": 0.0, "aspect": 0.0}
 
 #: The disc source's parameter: its radius in data pixels.
 SOURCE_DISC = {"source_radius": 1.0}
@@ -47,14 +47,13 @@ SOURCE_DISC = {"source_radius": 1.0}
 #: ``white`` · Z(I / ``white``; ``toe``, ``knee``) + background, I the linear image.
 RESPONSE = {"white": 1.0, "toe": 0.0, "knee": 60.0}
 
-#: The unit of every parameter a model can have (result.json's "units", the FITS
-#: keywords' comments); ``z<j>`` are nm RMS (:func:`parameter_unit`). "1": a pure number.
+#: The unit of every parameter a model can have besides its detector layers' (theirs:
+#: :attr:`ImageModel.units`; result.json's "units", the FITS keywords' comments);
+#: ``z<j>`` are nm RMS (:func:`parameter_unit`). "1": a pure number.
 UNITS = {"rotation": "deg, counter-clockwise", "x0": "data px right of centre",
          "y0": "data px down from centre", "pixel_scale": "arcsec per data px",
          "flux": "data units x exposure", "background": "data units",
-         "jitter": "data px, Gaussian sigma", "halo": "1, fraction of the light",
-         "halo_width": "data px, Gaussian sigma", "halo2": "1, fraction of the light",
-         "halo2_width": "data px, Gaussian sigma", "shear": "1", "aspect": "1",
+         "shear": "1", "aspect": "1",
          "source_radius": "data px", "white": "data units", "toe": "1, of I / white",
          "knee": "1", "flat_to_flat": "m", "gap": "m", "obstruction": "m, radius",
          "strut_width": "m", "strut_spread": "deg", "strut_tilt": "deg, from 90",
@@ -62,15 +61,50 @@ UNITS = {"rotation": "deg, counter-clockwise", "x0": "data px right of centre",
          "iris_radius": "m, circumradius", "curvature": "1, R x curvature"}
 
 
-def parameter_unit(name: str) -> str:
+#: the detector layers every model has (its halos: one, ``halo``, unless it is given others)
+DEFAULT_LAYERS = (Jitter(), Halo())
+
+
+def parameter_unit(name: str, model: ImageModel | None = None) -> str:
     """The unit of parameter ``name`` (a per-capture copy "x0@1" has x0's): from
-    :data:`UNITS`, "nm RMS" for a Zernike term ``z<j>``."""
+    ``model``'s detector layers (default: a model's default layers), :data:`UNITS`, "nm
+    RMS" for a Zernike term ``z<j>``."""
     base = name.split("@")[0]
+    layers = DEFAULT_LAYERS if model is None else model.layers
+    for layer in layers:
+        if base in layer.units:
+            return layer.units[base]
     if re.fullmatch(r"z\d+", base):
         return "nm RMS"
     if base not in UNITS:
         raise KeyError(f"parameter_unit: no unit for {name!r}; add it to fitting._model.UNITS.")
     return UNITS[base]
+
+
+def parameter_defaults(pupil: PupilBuilder, *, zernike: Sequence[int] = (),
+                       source: Any = "point", response: bool = False,
+                       halos: Sequence[Halo] = (Halo(),)) -> dict[str, float]:
+    """Every parameter a model of these parts has, with its default: the common ones,
+    the detector layers' (the jitter, each halo's), the pupil builder's, ``z<j>`` for
+    each Zernike term, a disc source's radius and the response curve's. The one list
+    :class:`ImageModel` and a manifest's ``params`` are checked against."""
+    others = dict(COMMON) | dict(pupil.defaults) | {f"z{int(j)}": 0.0 for j in zernike}
+    out = dict(COMMON)
+    for layer in (Jitter(), *halos):
+        mine = layer.parameters
+        clash = sorted(set(mine) & (set(out) | set(others) | set(SOURCE_DISC) | set(RESPONSE)))
+        if clash:
+            who = getattr(layer, "name", "jitter")
+            raise FitInputError(f"halos: the halo {who!r} has the parameters {sorted(mine)}: "
+                                f"the names {clash} are taken with other parameters of the model; "
+                                "name the halo otherwise.")
+        out |= mine
+    out |= others
+    if isinstance(source, str) and source == "disc":
+        out |= SOURCE_DISC
+    if response:
+        out |= RESPONSE
+    return out
 
 def _source_kind(source):
     """"point", "disc" or a user image (a 2-D array of non-negative finite values with a
@@ -120,32 +154,6 @@ def _resampling_order(resampling) -> int:
                             f"RESAMPT1 = LANCZOS3); got {resampling!r}.")
     return int(m.group(1))
 
-def lanczos_kernel(x, a: int):
-    """The Lanczos-``a`` interpolation kernel sinc(x)·sinc(x/a) for |x| < a, else 0."""
-    x = np.asarray(x, float)
-    return np.where(np.abs(x) < a, np.sinc(x) * np.sinc(x / a), 0.0)
-
-def lanczos_transfer(f, a: int, n: int = 4001):
-    """The transfer function (Fourier transform, unit at f = 0) of the continuous
-    Lanczos-``a`` kernel at frequencies ``f`` (cycles per data pixel).
-
-    Why a resampled image sees it: a frame sampled at an offset u and interpolated
-    onto the output grid with kernel L gives out(x) = Σ_k g(k + u) L(x − k − u); averaged
-    over offsets u spread evenly over a pixel this is ∫ g(t) L(x − t) dt, the
-    convolution of the pixel-integrated PSF g with L. A co-add of many frames at
-    random sub-pixel offsets (SWarp's RESAMPT = LANCZOS3, combined by mean or median)
-    is blurred by L on average; the separable 2-D kernel is L(x) L(y).
-    Composite Simpson's rule over [−a, a] with ``n`` (odd) nodes: the kernel is smooth
-    and compact, so 4001 nodes give the transfer to about 1e-12."""
-    x = np.linspace(-a, a, n)
-    w = np.ones(n)
-    w[1:-1:2], w[2:-1:2] = 4.0, 2.0
-    w *= (x[1] - x[0]) / 3.0
-    k = lanczos_kernel(x, a) * w
-    f = np.asarray(f, float)
-    h = np.cos(2 * np.pi * f[..., None] * x) @ k
-    return h / k.sum()
-
 def image_distortion(shear, aspect):
     """The image-plane linear map D = [[1, 0], [shear, 1 + aspect]] (x right, y up): the
     data's y axis keeps its direction (so ``rotation`` is read against it), a direction
@@ -168,9 +176,9 @@ class ImageModel:
     ``params``: name → :class:`Param` (or a number, or a dict with value/free/bounds/
     scale) for the common parameters (``rotation`` deg, ``x0``, ``y0`` data pixels,
     ``flux``, ``background``, ``pixel_scale`` arcsec per data pixel, ``jitter`` σ in data
-    pixels, ``halo`` fraction and ``halo_width`` σ in data pixels: a broad scattered-light
-    Gaussian; ``halo2``, ``halo2_width``: a second one, applied after the first (each
-    moves a fraction of the light into a Gaussian: a segmented mirror's phasing errors
+    pixels; for each of ``halos`` (:class:`Halo`, default one named ``halo``) its
+    fraction ``<name>`` and σ ``<name>_width`` in data pixels (each moves a fraction of
+    the light into a Gaussian: scattered light; a segmented mirror's phasing errors
     scatter light into a halo about one segment's diffraction pattern wide, a co-add's
     misregistration and a detector's charge diffusion spread the core); ``shear`` and
     ``aspect``: the image-plane distortion of :func:`image_distortion`), the pupil
@@ -198,7 +206,8 @@ class ImageModel:
     def __init__(self, pupil: PupilBuilder, params: Mapping[str, Any], *, light: Light,
                  zernike: Sequence[int] = (), oversample: float = 1.0, pad: int = 8,
                  accuracy: float = 1e-2, max_shift: float = 4.0, source: Any = "point",
-                 response: bool = False, resampling: str | None = None):
+                 response: bool = False, resampling: str | None = None,
+                 halos: Sequence[Halo | str | Mapping] | None = None):
         self.pupil = pupil
         self.resampling = _resampling_order(resampling)
         self.source = _source_kind(source)
@@ -211,11 +220,10 @@ class ImageModel:
         self.pad = int(pad)
         self.accuracy = float(accuracy)
         self.max_shift = float(max_shift)
-        defaults = dict(COMMON) | dict(pupil.defaults) | {f"z{j}": 0.0 for j in self.zernike}
-        if isinstance(self.source, str) and self.source == "disc":
-            defaults |= SOURCE_DISC
-        if self.response:
-            defaults |= RESPONSE
+        #: the halos (:class:`Halo`), each a fraction of the light in a Gaussian
+        self.halos = halos_of(halos)
+        defaults = parameter_defaults(pupil, zernike=self.zernike, source=self.source,
+                                      response=self.response, halos=self.halos)
         unknown = set(params) - set(defaults)
         if unknown:
             raise FitInputError(f"ImageModel: unknown parameters {sorted(unknown)}; known: "
@@ -227,16 +235,17 @@ class ImageModel:
                 raise FitInputError(f"ImageModel: pixel_scale {v} is not in arcsec per pixel "
                                     "(expected 1e-4 … 100).")
         for k, lo in (("source_radius", 0.0), ("white", 1e-300), ("knee", 1e-300),
-                      ("toe", 0.0)):
+                      ("toe", 0.0), *((f"{h.name}_width", 0.0) for h in self.halos)):
             p = self.params.get(k)
             if p is not None and min([p.value, *(p.bounds or ())]) < lo:
                 raise FitInputError(f"ImageModel: {k} = {p.value} (bounds {p.bounds}) must be "
                                     f"{'>= 0' if lo == 0 else '> 0'}.")
-        p = self.params.get("incoherent")
-        if p is not None and not 0 <= min([p.value, *(p.bounds or ())]) <= max(
-                [p.value, *(p.bounds or ())]) <= 1:
-            raise FitInputError(f"ImageModel: incoherent = {p.value} (bounds {p.bounds}) is "
-                                "a fraction of the light: keep it and its bounds in [0, 1].")
+        for k in ("incoherent", *(h.name for h in self.halos)):
+            p = self.params.get(k)
+            if p is not None and not 0 <= min([p.value, *(p.bounds or ())]) <= max(
+                    [p.value, *(p.bounds or ())]) <= 1:
+                raise FitInputError(f"ImageModel: {k} = {p.value} (bounds {p.bounds}) is "
+                                    "a fraction of the light: keep it and its bounds in [0, 1].")
         for j in self.zernike:
             p = self.params[f"z{j}"]
             if max([abs(p.value), *(abs(b) for b in (p.bounds or ()))]) > 1e4:
@@ -498,13 +507,9 @@ class ImageModel:
         fy = np.fft.fftfreq(hp * q)[:, None] * q  # cycles per data pixel
         fx = np.fft.rfftfreq(wp * q)[None, :] * q
         f2 = fx**2 + fy**2
-        kern = jnp.exp(-2 * math.pi**2 * v["jitter"] ** 2 * f2)
-        for frac, width in (("halo", "halo_width"), ("halo2", "halo2_width")):
-            kern = kern * ((1.0 - v[frac])
-                           + v[frac] * jnp.exp(-2 * math.pi**2 * v[width] ** 2 * f2))
-        o = self.oversample
-        if o != 1.0:
-            kern = kern * jnp.asarray(np.sinc(o * fx) * np.sinc(o * fy))
+        kern = 1.0
+        for layer in self.layers:
+            kern = kern * layer.transfer(v, fx, fy)
         if isinstance(self.source, str) and self.source == "disc":
             kern = kern * disc_transform(2 * math.pi * np.sqrt(f2) * v["source_radius"])
         if data_grid and self.has_data_grid_kernel:
@@ -513,6 +518,19 @@ class ImageModel:
                                  "are defined on the data's pixels (q = 1 only).")
             kern = kern * self.data_grid_kernel((hp, wp))
         return kern
+
+    @property
+    def layers(self) -> tuple:
+        """The detector's layers that blur the image on any grid (:mod:`._detector`):
+        the jitter, each halo, a native pixel's box for oversampled data. (A co-add's
+        :class:`Resampling` acts on the data's pixels: :meth:`data_grid_kernel`.)"""
+        native = (NativePixel(self.oversample),) if self.oversample != 1.0 else ()
+        return (Jitter(), *self.halos, *native)
+
+    @property
+    def units(self) -> dict[str, str]:
+        """Every parameter's unit (:func:`parameter_unit`)."""
+        return {k: parameter_unit(k, self) for k in self.params}
 
     @property
     def has_data_grid_kernel(self) -> bool:
@@ -529,8 +547,7 @@ class ImageModel:
         fx = np.fft.rfftfreq(wp)[None, :]
         kern = np.ones((hp, wp // 2 + 1))
         if self.resampling:
-            a = self.resampling
-            kern = kern * lanczos_transfer(fx, a) * lanczos_transfer(fy, a)
+            kern = kern * Resampling(self.resampling).transfer({}, fx, fy)
         if not isinstance(self.source, str):
             kern = kern * self._source_spectrum((hp, wp))
         return jnp.asarray(kern)

@@ -235,7 +235,7 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
         "residual_rms_over_peak": res.residual_rms_peak,
         "wall_time_s": wall,
         "values": res.values,
-        "units": {k: parameter_unit(k) for k in res.values},
+        "units": {k: parameter_unit(k, model) for k in res.values},
         "errors": res.errors,
         "free": res.free,
         "warnings": res.warnings,
@@ -253,7 +253,7 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     }
     (out / "result.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
     np.save(out / "model.npy", np.asarray(res.model_image))  # (N, H, W) for N captures
-    _write_fits(out, res, data, opts)
+    _write_fits(out, res, data, opts, model)
     _figure(res, out / "fit.png", man.get("name", Path(manifest).parent.name))
     if verbose:
         print(res.summary())
@@ -263,7 +263,7 @@ def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     return summary
 
 
-def _write_fits(out: Path, res, data, opts) -> None:
+def _write_fits(out: Path, res, data, opts, model) -> None:
     """model.fits and residual.fits (model_I / residual_I.fits for capture I of several):
     in the input file's layout (a FITS input's header and WCS, its row order, its full
     frame with NaN outside the fitted window), so that the input minus model.fits is
@@ -280,7 +280,8 @@ def _write_fits(out: Path, res, data, opts) -> None:
     for i, (d, m, cap) in enumerate(zip(datas, models, caps)):
         v = values_of_capture(res.values, i)
         kw = [("DIFSTAR", "fit-image", "written by difstar fit-image")]
-        kw += [(f"DIFSTAR {k.upper()}", float(x), parameter_unit(k)) for k, x in v.items()]
+        kw += [(f"DIFSTAR {k.upper()}", float(x), parameter_unit(k, model))
+               for k, x in v.items()]
         src = d.path
         im = read_image(src) if src is not None else None
         like = dict(source=src, roi=cap.get("roi"), flipped=bool(im and im.flipped),

@@ -10,6 +10,7 @@ import math
 import numbers
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from .._validate import InputError, check_camera_scene, check_polygon_vertices
@@ -17,6 +18,7 @@ from ._json import (  # noqa: F401
     SceneError,
     _short,
     check_finite_doc,
+    check_float32_doc,
     load_schema,
     read_json,
     schema_path,
@@ -179,6 +181,11 @@ def scene_from_dict(doc: dict, *, source: str = "<scene>"):
 
     _check_spectrum(doc, source=source)
     validate(doc, "scene", source=source)
+    if not jax.config.jax_enable_x64:
+        try:
+            check_float32_doc(doc, source=source)
+        except InputError as e:
+            raise SceneError(str(e)) from None
     cam = doc["camera"]
     ld = cam["lens"]
     f = float(ld["focal_length"])
@@ -221,7 +228,14 @@ def scene_from_dict(doc: dict, *, source: str = "<scene>"):
         if isinstance(exc, SceneError):
             raise
         raise SceneError(f"{source}: {exc}") from None
-    return camera, scene, dict(doc.get("grid", {}))
+    grid = dict(doc.get("grid", {}))
+    # JSON's integers may be written 1e3 or 64.0 (the schema takes them): ints from here
+    for k in ("n", "oversample"):
+        if k in grid:
+            grid[k] = int(grid[k])
+    if "crop" in grid:
+        grid["crop"] = [int(c) for c in grid["crop"]]
+    return camera, scene, grid
 
 
 def _source_from_dict(s: dict):

@@ -1,0 +1,191 @@
+"""The detector's layers: what acts on a star's image after the optics, each a class
+with its named parameters (defaults and units) and its transfer function, the factor it
+multiplies the image's spectrum by (frequencies in cycles per data pixel).
+
+:class:`ImageModel` composes them: a :class:`Jitter`, a list of :class:`Halo` layers
+(each named by its user), a :class:`NativePixel` for oversampled data, and a
+:class:`Resampling` kernel for a co-add. A blur's transfer is a product, so the order of
+the layers does not change the image. A new layer is a class here with its test (see
+docs/design.md, "Where to add")."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._params import FitInputError
+
+
+class DetectorLayer:
+    """One layer of the detector. ``parameters``: its named parameters with their
+    defaults; ``units``: theirs; :meth:`transfer`: its factor on the image's spectrum
+    at frequencies ``fx`` (columns) and ``fy`` (rows), cycles per data pixel, for the
+    values ``v`` (traceable). ``on_data_grid``: it acts on the data's pixels themselves,
+    after they sample the image (computed on the data's grid only)."""
+
+    on_data_grid: ClassVar[bool] = False
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        return {}
+
+    @property
+    def units(self) -> dict[str, str]:
+        return {}
+
+    def transfer(self, v: Mapping[str, Any], fx, fy):
+        raise NotImplementedError
+
+
+def _gaussian(sigma, fx, fy):
+    """The transfer of a unit Gaussian of σ ``sigma`` data pixels."""
+    return jnp.exp(-2 * math.pi**2 * sigma**2 * (fx**2 + fy**2))
+
+
+@dataclasses.dataclass(frozen=True)
+class Jitter(DetectorLayer):
+    """A Gaussian blur of σ ``jitter`` data pixels (pointing jitter, charge diffusion)."""
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        return {"jitter": 0.0}
+
+    @property
+    def units(self) -> dict[str, str]:
+        return {"jitter": "data px, Gaussian sigma"}
+
+    def transfer(self, v, fx, fy):
+        return _gaussian(v["jitter"], fx, fy)
+
+
+#: a halo's name: a parameter name of its own (letters, digits, underscores)
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+@dataclasses.dataclass(frozen=True)
+class Halo(DetectorLayer):
+    """A fraction of the light moved into a Gaussian: parameters ``<name>`` (the
+    fraction, 0 … 1; default 0, off) and ``<name>_width`` (its σ in data pixels;
+    default ``width``). Scattered light; a segmented mirror's phasing errors, which
+    spread light over about one segment's diffraction pattern; a co-add's
+    misregistration. A model may have any number, each under its own name."""
+
+    name: str = "halo"
+    width: float = 4.0
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not _NAME.fullmatch(self.name) or (
+                re.fullmatch(r"z\d+", self.name)):
+            raise FitInputError(f"Halo: name {self.name!r} must be letters, digits and "
+                                "underscores, starting with a letter (and not z<j>, a "
+                                "Zernike term), e.g. 'halo' or 'scatter'.")
+        w = self.width
+        if isinstance(w, bool) or not isinstance(w, (int, float)) or not (
+                math.isfinite(w) and w > 0):
+            raise FitInputError(f"Halo {self.name!r}: width {w!r} must be a finite number "
+                                "of data pixels > 0.")
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        return {self.name: 0.0, f"{self.name}_width": float(self.width)}
+
+    @property
+    def units(self) -> dict[str, str]:
+        return {self.name: "1, fraction of the light",
+                f"{self.name}_width": "data px, Gaussian sigma"}
+
+    def transfer(self, v, fx, fy):
+        a = v[self.name]
+        return (1.0 - a) + a * _gaussian(v[f"{self.name}_width"], fx, fy)
+
+
+@dataclasses.dataclass(frozen=True)
+class NativePixel(DetectorLayer):
+    """A native detector pixel's box, ``size`` data pixels wide (drizzled or
+    oversampled data): its transfer sinc(size fx) sinc(size fy)."""
+
+    size: float
+
+    def transfer(self, v, fx, fy):
+        return jnp.asarray(np.sinc(self.size * fx) * np.sinc(self.size * fy))
+
+
+def lanczos_kernel(x, a: int):
+    """The Lanczos-``a`` interpolation kernel sinc(x)·sinc(x/a) for |x| < a, else 0."""
+    x = np.asarray(x, float)
+    return np.where(np.abs(x) < a, np.sinc(x) * np.sinc(x / a), 0.0)
+
+
+def lanczos_transfer(f, a: int, n: int = 4001):
+    """The transfer function (Fourier transform, unit at f = 0) of the continuous
+    Lanczos-``a`` kernel at frequencies ``f`` (cycles per data pixel).
+
+    Why a resampled image sees it: a frame sampled at an offset u and interpolated
+    onto the output grid with kernel L gives out(x) = Σ_k g(k + u) L(x − k − u); averaged
+    over offsets u spread evenly over a pixel this is ∫ g(t) L(x − t) dt, the
+    convolution of the pixel-integrated PSF g with L. A co-add of many frames at
+    random sub-pixel offsets (SWarp's RESAMPT = LANCZOS3, combined by mean or median)
+    is blurred by L on average; the separable 2-D kernel is L(x) L(y).
+    Composite Simpson's rule over [−a, a] with ``n`` (odd) nodes: the kernel is smooth
+    and compact, so 4001 nodes give the transfer to about 1e-12."""
+    x = np.linspace(-a, a, n)
+    w = np.ones(n)
+    w[1:-1:2], w[2:-1:2] = 4.0, 2.0
+    w *= (x[1] - x[0]) / 3.0
+    k = lanczos_kernel(x, a) * w
+    f = np.asarray(f, float)
+    h = np.cos(2 * np.pi * f[..., None] * x) @ k
+    return h / k.sum()
+
+
+@dataclasses.dataclass(frozen=True)
+class Resampling(DetectorLayer):
+    """The Lanczos-``order`` kernel a co-add was resampled with (SWarp's RESAMPT =
+    LANCZOS3: ``order`` 3), on the data's pixels: :func:`lanczos_transfer` in x and y."""
+
+    order: int
+    on_data_grid: ClassVar[bool] = True
+
+    def transfer(self, v, fx, fy):
+        return lanczos_transfer(fx, self.order) * lanczos_transfer(fy, self.order)
+
+
+def halos_of(given) -> tuple[Halo, ...]:
+    """The halos a model is given: None (one, ``halo``), or a list of :class:`Halo`,
+    names, or ``{"name": ..., "width": ...}`` (as a manifest's ``detector.halos``
+    writes them); the names must differ."""
+    if given is None:
+        return (Halo(),)
+    if isinstance(given, (str, Mapping, Halo)) or not hasattr(given, "__iter__"):
+        raise FitInputError(f"halos: a list of halos (Halo, a name, or {{name, width}}); "
+                            f"got {given!r}.")
+    out = []
+    for i, h in enumerate(given):
+        try:
+            if isinstance(h, str):
+                h = Halo(h)
+            elif isinstance(h, Mapping):
+                if set(h) - {"name", "width"} or "name" not in h:
+                    raise FitInputError(f"a halo is {{name, width}}; got {dict(h)}.")
+                h = Halo(**h)
+            elif not isinstance(h, Halo):
+                raise FitInputError(f"a Halo, a name or {{name, width}}; got {h!r}.")
+        except FitInputError as e:
+            raise FitInputError(f"halos/{i}: {e}") from None
+        out.append(h)
+    names = [h.name for h in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise FitInputError(f"halos: the names {dup} are given twice; each halo needs a name "
+                            "of its own (e.g. 'halo' and 'halo2').")
+    return tuple(out)
+
+
+__all__ = ["DetectorLayer", "Halo", "Jitter", "NativePixel", "Resampling", "halos_of",
+           "lanczos_kernel", "lanczos_transfer"]
