@@ -179,8 +179,8 @@ def choose_grid(
             return d if len(d) <= 12 else f"{d[0]}.{d[1:3]}e{len(d) - 1}"
 
         raise SamplingError(
-            f"difstar.choose_grid: the grid ({count(side // q)} px a side, oversample {q}: "
-            f"{count(side)} samples a side) needs at least {fmt_bytes(_grid_bytes(side))} of memory, "
+            f"difstar.choose_grid: the grid ({count(side // q)} px a side, oversample "
+            f"{q}: {count(side)} samples a side) needs at least {fmt_bytes(_grid_bytes(side))} of memory, "
             f"more than the {fmt_bytes(budget)} this machine has (DIFSTAR_MEMORY_LIMIT "
             f"overrides). {fixes}"
         )
