@@ -180,7 +180,8 @@ def choose_grid(
 
         raise SamplingError(
             f"difstar.choose_grid: the grid ({count(side // q)} px a side, oversample "
-            f"{q}: {count(side)} samples a side) needs at least {fmt_bytes(_grid_bytes(side))} of memory, "
+            f"{q}: {count(side)} samples a side) needs at least "
+            f"{fmt_bytes(_grid_bytes(side))} of memory, "
             f"more than the {fmt_bytes(budget)} this machine has (DIFSTAR_MEMORY_LIMIT "
             f"overrides). {fixes}"
         )
