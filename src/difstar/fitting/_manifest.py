@@ -436,7 +436,7 @@ def load_manifest(path, *, transform=None):
     :func:`difstar.fitting.fit_changed_copy` fits such a copy."""
     from pathlib import Path
 
-    from ..io._json import SceneError, validate
+    from ..io._json import SceneError, check_float32_doc, validate
 
     path = Path(path)
     src = str(path)
@@ -444,6 +444,7 @@ def load_manifest(path, *, transform=None):
         man, chain = manifest_document(path)
         _manifest_shape(man, src)
         validate(man, "image_fit_manifest", source=src)
+        check_float32_doc(man, source=src)
     except SceneError as e:
         raise FitInputError(str(e)) from None
     several = isinstance(man["data"], list)

@@ -22,6 +22,18 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io import read_image
+from ..io._images import write_fits_like
+from ..io._output import output_dir
+from . import _studies
+from ._analysis import model_spike_angles, perturbed_starts, spike_angles
+from ._auto import stages_text
+from ._manifest import load_manifest
+from ._model import parameter_unit
+from ._params import PERTURB
+from ._procedure import fit
+from ._solve import _rms_peak, values_of_capture
+
 _MODEL_SPIKE_WINDOW = 8.0  # degrees: the model's spikes are measured this near the data's
 
 
@@ -32,8 +44,6 @@ def _figure(res, path, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm, SymLogNorm
-
-    from ._solve import _rms_peak, values_of_capture
 
     def rows(x):
         return x if isinstance(x, list) else [x]
@@ -103,10 +113,6 @@ def run(manifest: str | Path, out: str | Path, *, verbose: bool = True,
     A study the manifest cannot run is refused before the main fit."""
     import jax
 
-    from ..io._output import output_dir
-    from . import _studies
-    from ._manifest import load_manifest
-
     jax.config.update("jax_enable_x64", True)
     t0 = time.perf_counter()
     loaded = load_manifest(manifest)  # read once here, for the checks and the main fit
@@ -142,12 +148,6 @@ def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose,
                 about="start") -> dict:
     """Refit from ``n`` perturbed starts (about the manifest's starts or the main fit's
     ``about="result"``); compare each result with the main fit."""
-    from ._analysis import perturbed_starts
-    from ._manifest import load_manifest
-    from ._params import PERTURB
-    from ._procedure import fit
-    from ._solve import values_of_capture
-
     model, data, opts = load_manifest(manifest)
     ref, err = summary["values"], summary["errors"]
     # about the result: a per-capture parameter starts from its first capture's value
@@ -195,15 +195,8 @@ def _robustness(manifest, out, summary, n, seed, *, max_steps, verbose,
 def _run(manifest, loaded, t0, out, *, verbose, max_steps, final) -> dict:
     """The main fit of ``loaded`` = :func:`load_manifest`'s (model, data, options),
     loaded at ``t0`` (the wall time counts from there)."""
-    from ._analysis import model_spike_angles, spike_angles
-    from ._model import parameter_unit
-    from ._procedure import fit
-    from ._solve import values_of_capture
-
     model, data, opts = loaded
     if verbose and opts["manifest"].get("stages", "auto") == "auto":
-        from ._auto import stages_text
-
         print("stages chosen from the model and the data (the manifest gives none):\n"
               + stages_text(opts["stages"]), flush=True)
     res = fit(model, data, stages=opts["stages"], starts=opts["starts"],
@@ -268,11 +261,6 @@ def _write_fits(out: Path, res, data, opts, model) -> None:
     in the input file's layout (a FITS input's header and WCS, its row order, its full
     frame with NaN outside the fitted window), so that the input minus model.fits is
     residual.fits; the fitted values as keywords with their units."""
-    from ..io import read_image
-    from ..io._images import write_fits_like
-    from ._model import parameter_unit
-    from ._solve import values_of_capture
-
     datas = data if isinstance(data, list) else [data]
     models = res.model_image if isinstance(data, list) else [res.model_image]
     caps = opts["manifest"]["data"]

@@ -112,15 +112,20 @@ _F32_MAX, _F32_TINY = float(np.finfo(np.float32).max), float(np.finfo(np.float32
 
 
 def check_float32_doc(doc: Any, *, source: str = "<document>") -> None:
-    """Refuse a number that float32 cannot hold (beyond ±3.4e38, or nonzero below
-    1.2e-38 in size), naming its field: where difstar computes in float32 it would
-    become infinity or zero, and the error would name a value the user never gave."""
+    """Where difstar computes in float32 (JAX without x64, the command without
+    ``--x64``), refuse a number float32 cannot hold (beyond ±3.4e38, or nonzero below
+    1.2e-38 in size), naming its field: it would become infinity or zero, and a later
+    error would name a value the user never gave. Raises :class:`SceneError`."""
+    import jax
+
+    if jax.config.jax_enable_x64:
+        return
     for path, v in _walk(doc):
         if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
             continue
         x = abs(float(v)) if abs(v) < 2**1023 else math.inf
         if x > _F32_MAX or 0 < x < _F32_TINY:
-            raise InputError(f"{source}: field {_path_str(path)}: {v!r} is beyond what "
+            raise SceneError(f"{source}: field {_path_str(path)}: {v!r} is beyond what "
                              "float32 holds (1.2e-38 … 3.4e38 in size); give the value in "
                              "its documented units, or compute in float64 (difstar --x64).")
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._json import read_json_extends
+from ._json import check_float32_doc, read_json_extends
 from ._scene import SceneError, validate
 
 DEFAULT_WAVELENGTHS = (600e-9, 530e-9, 450e-9)
@@ -104,6 +104,7 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
     path = Path(path)
     src = str(path)
     validate(doc, "fit_manifest", source=src)
+    check_float32_doc(doc, source=src)
     cam = dict(doc["camera"])
     cam.setdefault("principal_separation", 0.0)
     cam.setdefault("pupil_magnification", 1.0)

@@ -10,7 +10,6 @@ import math
 import numbers
 from pathlib import Path
 
-import jax
 import numpy as np
 
 from .._validate import InputError, check_camera_scene, check_polygon_vertices
@@ -181,11 +180,7 @@ def scene_from_dict(doc: dict, *, source: str = "<scene>"):
 
     _check_spectrum(doc, source=source)
     validate(doc, "scene", source=source)
-    if not jax.config.jax_enable_x64:
-        try:
-            check_float32_doc(doc, source=source)
-        except InputError as e:
-            raise SceneError(str(e)) from None
+    check_float32_doc(doc, source=source)
     cam = doc["camera"]
     ld = cam["lens"]
     f = float(ld["focal_length"])
@@ -263,6 +258,25 @@ def load_scene(path: str | Path):
     return scene_from_dict(read_json(path, what="scene file"), source=str(path))
 
 
+def _shortest_float32(doc):
+    """Without x64 the values were float32: each written as the shortest decimal that is
+    the same float32 (0.0515, not 0.051500000059604645), so that a scene file reads as
+    its author wrote it. Values that are no float32 number are left as they are."""
+    import jax
+
+    if jax.config.jax_enable_x64:
+        return doc
+    if isinstance(doc, dict):
+        return {k: _shortest_float32(v) for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [_shortest_float32(v) for v in doc]
+    if isinstance(doc, float) and math.isfinite(doc):
+        f = np.float32(doc)
+        if float(f) == doc:
+            return float(str(f))
+    return doc
+
+
 def scene_to_dict(camera, scene, grid_options: dict | None = None, *, name: str | None = None) -> dict:
     """The JSON document (schema ``scene``) for a camera and scene."""
     import difstar
@@ -322,6 +336,7 @@ def scene_to_dict(camera, scene, grid_options: dict | None = None, *, name: str 
     }
     if name:
         doc = {"name": name, **doc}
+    doc = _shortest_float32(doc)
     if grid_options:
         doc["grid"] = {k: (list(v) if isinstance(v, tuple) else v) for k, v in grid_options.items()}
     return doc
