@@ -45,6 +45,7 @@ from ._design_optimisers import (
 from ._param import Param
 from ._progress import step_bar, ticking
 from ._psf import plan_psf, psf
+from ._validate import MAX_BLADES, InputError, check_number
 from .pupils import AbstractPupil, CurvedIris, curved_iris_from_area
 
 # --- PSFs for a design ---------------------------------------------------------------------
@@ -129,8 +130,6 @@ class IrisFamily(eqx.Module):
     segments: int = eqx.field(static=True, default=16)
 
     def __check_init__(self):
-        from ._validate import MAX_BLADES, check_number
-
         check_number(self.n, "IrisFamily.n", integer=True, ge=3, le=MAX_BLADES,
                      fix="the blade count")
         check_number(self.area, "IrisFamily.area", gt=0, unit="m²",
@@ -213,8 +212,6 @@ START_MARGIN = 1e-3
 def _constraints(params0, constraints):
     """A :class:`difstar.Param` holding the start and its bounds (None: unbounded), or
     the user's own reparametrisation object (``constrain``/``unconstrain``)."""
-    from ._validate import InputError
-
     if isinstance(params0, Param):
         if constraints is not None:
             raise InputError("constraints: the start is a Param, which carries its own "
@@ -299,8 +296,6 @@ def design(
 
     The step is compiled once (``eqx.filter_jit``); objectives must be jittable.
     """
-    from ._validate import check_number
-
     steps = check_number(steps, "steps", integer=True, ge=0,
                          fix="the optimiser iterations")
     kind, optimiser = optimiser_kind(optimiser)
@@ -357,8 +352,6 @@ def design(
 
 def _box_bounds(constraints):
     """(lower, upper) of the constraints for :class:`LBFGSB` (None: unbounded)."""
-    from ._validate import InputError
-
     if constraints is None:
         return None
     if not isinstance(constraints, Param):

@@ -22,6 +22,18 @@ import math
 import sys
 import time
 
+from difstar._batch import map_batch
+from difstar._design import OPTIMISERS, IrisFamily, IrisParams, PSFSetup, convexity_bound
+from difstar._design_measures import (
+    bokeh_nonuniformity,
+    core_energy,
+    halo_anisotropy,
+    spike_energy,
+    spike_length,
+)
+from difstar._validate import MAX_BLADES, InputError, check_number
+from difstar.io._scene import SceneError, validate
+
 STUDY_DEFAULTS = {
     "focal_length": 50e-3,
     "wavelength": 550e-9,
@@ -51,8 +63,6 @@ STUDY_FLAGS = {"blades": "--blades", "f_number": "--f-number", "steps": "--steps
 
 
 def check_f_number(f_number, field: str = "f_number") -> float:
-    from difstar._validate import check_number
-
     return check_number(f_number, field, ge=MIN_F_NUMBER, le=MAX_F_NUMBER,
                         fix="the study's iris at f/8 by default; faster needs pupil grids "
                         "growing as 1/N², slower puts the Airy disc beyond the frame")
@@ -65,9 +75,6 @@ def check_study_args(*, blades=9, f_number=8.0, steps=None, max_curvature=0.6,
     together: every iris they allow must be convex), before anything is computed;
     :class:`InputError` names the argument (``names``: Python name → what to call it,
     e.g. :data:`STUDY_FLAGS`) and the fix. Returns them as numbers."""
-    from difstar._design import OPTIMISERS, convexity_bound
-    from difstar._validate import MAX_BLADES, InputError, check_number
-
     n = {k: k for k in (*STUDY_FLAGS, "learning_rate")} | dict(names or {})
     out = {
         "blades": check_number(blades, n["blades"], integer=True, ge=3, le=MAX_BLADES),
@@ -115,9 +122,6 @@ def check_study_args(*, blades=9, f_number=8.0, steps=None, max_curvature=0.6,
 
 def study_setup(*, blades: int = 9, f_number: float = 8.0, quick: bool = False):
     """(IrisFamily, PSFSetup, measure options) for the worked study."""
-    from difstar._design import IrisFamily, PSFSetup
-    from difstar._validate import MAX_BLADES, check_number
-
     blades = check_number(blades, "blades", integer=True, ge=3, le=MAX_BLADES)
     f_number = check_f_number(f_number)
     f = STUDY_DEFAULTS["focal_length"]
@@ -140,14 +144,6 @@ def measures_fn(family, setup, opts):
     the study's setup (``measures``: a dict of scalar arrays); :func:`measure` runs it on
     one design, :func:`sweep_designs` maps it over many."""
     import jax.numpy as jnp
-
-    from difstar._design_measures import (
-        bokeh_nonuniformity,
-        core_energy,
-        halo_anisotropy,
-        spike_energy,
-        spike_length,
-    )
 
     rb = setup.blur_radius(family.area)
     rc, hw = opts["core_radius"], opts["half_width"]
@@ -181,8 +177,6 @@ def study_objective(family, setup, opts, *, bokeh_weight: float = 0.0):
     """The study's objective ``params → (value, {"halo_anisotropy", ["bokeh_cv"]})``:
     the halo anisotropy of the focused PSF plus ``bokeh_weight`` × the defocused
     highlight's coefficient of variation."""
-    from difstar._design_measures import bokeh_nonuniformity, halo_anisotropy
-
     rb = setup.blur_radius(family.area)
 
     def objective(p):
@@ -338,8 +332,6 @@ _SWEEP_FIELDS = ("designs", "grid")
 def _number(value, field: str, **limits):
     """:func:`difstar._validate.check_number`, refusing a number written as a string
     (JSON's numbers have no quotes)."""
-    from difstar._validate import InputError, check_number
-
     if isinstance(value, str):
         fix = f" ({limits['fix']})" if "fix" in limits else ""
         raise InputError(f"{field}: {value!r} is a string, not a number; write the number "
@@ -350,8 +342,6 @@ def _number(value, field: str, **limits):
 def _vertex_values(value, field: str, blades: int):
     """One number (every vertex alike) or ``blades`` numbers, each in (−0.5, 0.5)."""
     import numpy as np
-
-    from difstar._validate import InputError
 
     if isinstance(value, (list, tuple)):
         if len(value) != blades:
@@ -379,9 +369,6 @@ def parse_sweep(doc, *, blades: int, source: str = "sweep") -> list[dict]:
     it, the message is the one from here (the field and the fix), else the schema's
     (the field as a JSON path). Convexity is :func:`check_convex`'s (it computes the
     outlines)."""
-    from difstar._validate import MAX_BLADES, InputError, check_number
-    from difstar.io._scene import SceneError, validate
-
     blades = check_number(blades, "blades", integer=True, ge=3, le=MAX_BLADES)
     if isinstance(doc, dict):  # the count first: the schema would look at every design
         grid = doc.get("grid")
@@ -407,8 +394,6 @@ def parse_sweep(doc, *, blades: int, source: str = "sweep") -> list[dict]:
 
 def _parse_sweep(doc, *, blades: int, source: str) -> list[dict]:
     import numpy as np
-
-    from difstar._validate import InputError
 
     if not isinstance(doc, dict):
         raise InputError(f'{source}: expected a JSON object like {{"designs": [{{"name": '
@@ -492,8 +477,6 @@ def curvature_grid(lo, hi, n, *, blades: int, flag: str = "--sweep-curvature") -
     ``hi`` (the flag's three values), as :func:`parse_sweep` returns them."""
     import numpy as np
 
-    from difstar._validate import InputError, check_number
-
     lo = check_number(lo, f"{flag} LO", ge=0, le=1, fix="0 straight blades, 1 a circle")
     hi = check_number(hi, f"{flag} HI", ge=0, le=1, fix="0 straight blades, 1 a circle")
     n = check_number(n, f"{flag} N", integer=True, ge=1, le=MAX_SWEEP_DESIGNS,
@@ -510,8 +493,6 @@ def check_convex(designs, *, blades: int = 9, f_number: float = 8.0,
     """Refuse (:class:`InputError`: the design, its name and the fix) a design of
     :func:`parse_sweep`'s whose iris is not convex: exact margins from the outlines,
     no PSF computed."""
-    from difstar._design import IrisFamily
-
     area = math.pi * (STUDY_DEFAULTS["focal_length"] / (2 * check_f_number(f_number))) ** 2
     _check_convex(IrisFamily(blades, area), designs, source)
 
@@ -521,8 +502,6 @@ def _check_convex(family, designs, source: str) -> None:
     PSFs)."""
     import jax
     import numpy as np
-
-    from difstar._validate import InputError
 
     if not designs:
         return
@@ -550,8 +529,6 @@ def _stack(designs) -> dict:
 
 
 def _params(item):
-    from difstar._design import IrisParams
-
     return IrisParams(item["curvature"], item["radial"], item["angular"])
 
 
@@ -566,8 +543,6 @@ def sweep_designs(designs, *, blades: int = 9, f_number: float = 8.0, quick: boo
     its parameters and the same measures as :func:`measure` (equal to them to rounding).
     ``convexity_checked``: :func:`check_convex` has passed these designs already."""
     import numpy as np
-
-    from difstar._batch import map_batch
 
     family, setup, opts = study_setup(blades=blades, f_number=f_number, quick=quick)
     for i, d in enumerate(designs):

@@ -27,8 +27,17 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from difstar._fit import (
+    free_parts,
+    from_unconstrained,
+    make_args,
+    noise_sigma,
+    to_unconstrained,
+    weights,
+)
 from difstar._progress import moved_most
 from difstar.fitting._stage_types import Restart, Solve, parse_stage
+from difstar.io._scene import SceneError
 
 #: Restarts of each channel's response-curve parameters, as factors of the value reached:
 #: the knee and toe of a channel whose captures barely reach its shoulder are weakly
@@ -69,8 +78,6 @@ def observed_data(model, caps: dict, noise: dict, sigma_from: dict | None = None
     """{config: (ζ_obs, weight)} with σ from ``sigma_from`` ({config: ζ (K, h, w)}, e.g.
     a prediction) or from the observed ζ."""
     import jax.numpy as jnp
-
-    from difstar._fit import noise_sigma, weights
 
     data = {}
     for cfg in model.configs:
@@ -125,8 +132,6 @@ def procedure_of(model, solver: dict, src: str = "<manifest>") -> tuple:
     """The procedure ``solver.stages`` gives (dicts, as a manifest writes them, or typed
     stages), checked against ``model``; the default one where it gives none. Raises
     ``SceneError`` naming the stage and field."""
-    from difstar.io._scene import SceneError
-
     given = solver.get("stages")
     if given is None:
         return default_procedure(model, solver)
@@ -197,8 +202,6 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *,
     the last ended. Returns the final solve (:class:`difstar._lm.SolveResult`: its ``u``,
     and its linearisation for the covariance), the per-stage records and the last
     solve's ``args``."""
-    from difstar._fit import free_parts, make_args
-
     procedure = procedure_of(model, solver if procedure is None
                              else {**solver, "stages": list(procedure)}, "run_stages")
     records = []
@@ -270,8 +273,6 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
     PSF). The basin a restart looks for is the response curve's; only a restart that
     ends lower there is then solved with everything free, from where it ended, and kept
     if that ends lower than ``solved``."""
-    from difstar._fit import from_unconstrained, to_unconstrained
-
     tries = []
     spec = model.params.get(parameter)
     if spec is None or not spec.free:

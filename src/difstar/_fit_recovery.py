@@ -9,6 +9,10 @@ import time
 
 import numpy as np
 
+from difstar._batch import ENV_DEVICES, device_count
+from difstar._batch_fits import FitBatcher
+from difstar._distributed import init_distributed
+from difstar._fit import Fitter, to_unconstrained
 from difstar._fit_run import _log, fit_manifest, prepare
 from difstar._fit_truth import perturbed_starts
 from difstar.fitting._params import PERTURB  # starts within ± 20 %: one figure for both fitters
@@ -21,9 +25,6 @@ def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None) -
     (:class:`difstar._batch_fits.FitBatcher`), ``chunk`` fits at a time at most (default:
     as many as fit in memory); without, one after another."""
     import os
-
-    from difstar._batch import ENV_DEVICES
-    from difstar._fit import Fitter, to_unconstrained
 
     rng = np.random.default_rng(seed)
     t_study = time.perf_counter()
@@ -51,10 +52,6 @@ def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None) -
             rows.append(row_of(i, res, t0))
             _log(_row_text(i, rows[-1]))
     else:
-        from difstar._batch import device_count
-        from difstar._batch_fits import FitBatcher
-        from difstar._distributed import init_distributed
-
         init_distributed()
         n_dev = device_count(devices)
         model, caps = prepare(man)

@@ -15,15 +15,32 @@ from pathlib import Path
 
 import numpy as np
 
+from difstar import Grid
+from difstar._cfa import bayer_masks_np
+from difstar._fit import (
+    CameraConstants,
+    CaptureSpec,
+    ConfigSpec,
+    FitModel,
+    Fitter,
+    camera_scene,
+    from_unconstrained,
+    make_args,
+    to_unconstrained,
+)
 from difstar._fit_procedure import FIRST_STEP, _log, procedure_of, run_stages
 from difstar._fit_truth import compare_truth
+from difstar._param import Param
+from difstar._sampling import choose_grid
+from difstar.io._dng import synthesize_capture, write_dng, written_by_difstar
+from difstar.io._manifest import camera_pupil, roi_origin
+from difstar.io._output import output_dir
+from difstar.io._raw import read_raw
+from difstar.io._scene import SceneError
 
 # ------------------------------------------------------------------------ model setup
 
 def camera_constants(man):
-    from difstar._fit import CameraConstants
-    from difstar.io._manifest import camera_pupil
-
     c = man.camera
     return CameraConstants(
         focal_length=float(c["focal_length"]),
@@ -48,11 +65,6 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
     period; ``accuracy`` (default: the manifest's ``grid.accuracy``) its target, which
     alone (no ``padding`` given here) also chooses the period."""
     import dataclasses
-
-    from difstar import Grid
-    from difstar._fit import CaptureSpec, ConfigSpec, FitModel, camera_scene
-    from difstar._param import Param
-    from difstar._sampling import choose_grid
 
     cc = dataclasses.replace(camera_constants(man), pattern=pattern)
     params = {}
@@ -106,10 +118,6 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
 
 def load_captures(man):
     """Read each capture's region of interest: ζ, the saturated mask, levels."""
-    from difstar.io._manifest import roi_origin
-    from difstar.io._raw import read_raw
-    from difstar.io._scene import SceneError
-
     out = {}
     pattern = None
     for c in man.captures:
@@ -186,9 +194,6 @@ def photometric_start(fitter, caps, u0):
     depends on the camera's units (a wrong start by orders of magnitude saturates or
     blanks the whole prediction, where the solver cannot move it); left alone when φ0
     is fixed."""
-    from difstar._cfa import bayer_masks_np
-    from difstar._fit import from_unconstrained, to_unconstrained
-
     model = fitter.model
     spec = model.params.get("phi0")
     if spec is None or not spec.free:
@@ -217,8 +222,6 @@ def photometric_start(fitter, caps, u0):
 
 
 def _values(model, u) -> dict:
-    from difstar._fit import from_unconstrained
-
     return {k: np.asarray(v) for k, v in from_unconstrained(model, u).items()}
 
 
@@ -242,8 +245,6 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
     the Jacobian's columns out over that many devices (``Fitter(devices=)``)."""
     import jax
 
-    from difstar._fit import Fitter, to_unconstrained
-
     t_all = time.perf_counter()
     if model is None:
         model, caps = prepare(man)
@@ -264,8 +265,6 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
     if not np.all(np.asarray(args["active"]) == 1):
         # a written procedure's last solve held some parameters: the standard errors are
         # every free parameter's, from a Jacobian of them all at the answer
-        from difstar._fit import make_args
-
         args, solved = make_args(model, args["data"], u), None
     cov, se, diag = fitter.covariance(u, args, solved)
     t_cov = time.perf_counter() - t0
@@ -320,10 +319,6 @@ def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
     write them as DNGs into ``out_dir`` (whole or not at all). ``out_dir`` is checked
     before the computation (output policy of :mod:`difstar.io._output`; it may replace a
     folder holding exactly these captures), and never replaces the manifest."""
-    from difstar._fit import Fitter, to_unconstrained
-    from difstar.io._dng import synthesize_capture, write_dng
-    from difstar.io._output import output_dir
-
     syn = man.synthetic
     fh, fw = syn["frame_size"]
     pattern = man.camera.get("pattern", "RGGB")
@@ -370,7 +365,5 @@ def synth_replaceable(man):
     """What ``synth --overwrite`` may replace in a folder without difstar's marker: a
     DNG that difstar wrote, under the name of one of the manifest's captures (never a
     camera's own RAW file, nor any other file)."""
-    from difstar.io._dng import written_by_difstar
-
     names = {c.path.name for c in man.captures}
     return lambda p: p.name in names and written_by_difstar(p)

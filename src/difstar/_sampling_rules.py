@@ -23,7 +23,15 @@ import numpy as np
 from ._atf import pupil_scale
 from ._geometry import check_geometry
 from ._model import Camera, Grid, Scene, geometry_of
+from ._psf import _bytes, _edges, psf_bytes
 from ._psf_engine import SamplingError
+from ._validate import (
+    MAX_EXACT_EDGES,
+    InputError,
+    check_memory,
+    check_pupil_cost,
+    check_wavelength_count,
+)
 
 
 def _concrete(x):
@@ -124,8 +132,6 @@ def simulate_bytes(camera: Camera, grid: Grid) -> int:
     static shapes only (the grid, the wavelengths' count, the pupil's edges): the n·q
     grid (fft); the crop's offsets and the closed form's plane per edge (exact); the
     engine's PSF (:func:`difstar._psf.psf_bytes`) and the crop's offsets (engine)."""
-    from ._psf import _bytes, _edges, psf_bytes
-
     if grid.method == "fft":
         return _grid_bytes(grid.n * grid.oversample)
     if grid.method == "engine":  # its sub-grid at pitch p/q
@@ -148,15 +154,6 @@ def check_cost(camera: Camera, grid: Grid, where: str = "difstar.simulate") -> N
     ``MAX_WAVELENGTHS`` wavelengths per channel, an outline of more than ``MAX_EDGES``
     edges (``MAX_EXACT_EDGES`` on the closed form), or :func:`simulate_bytes` above the
     memory budget (``DIFSTAR_MEMORY_LIMIT``, else the device's or machine's memory)."""
-    from ._psf import _edges
-    from ._validate import (
-        MAX_EXACT_EDGES,
-        InputError,
-        check_memory,
-        check_pupil_cost,
-        check_wavelength_count,
-    )
-
     sen = camera.sensor
     k = int(np.shape(sen.wavelengths)[-1]) if np.ndim(sen.wavelengths) == 2 else 1
     check_wavelength_count(k, f"{where}: camera.sensor.wavelengths (per channel)")

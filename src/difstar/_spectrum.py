@@ -40,6 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.special
 
+from ._validate import MAX_SPECTRUM_SAMPLES, MAX_WAVELENGTHS, InputError, check_number
+from .io._sensitivity import load_spectral_sensitivity
+
 # CODATA 2018 exact constants
 _H = 6.62607015e-34  # J s
 _C = 299792458.0  # m / s
@@ -89,8 +92,6 @@ def _nm(wavelengths_m) -> np.ndarray:
 
 
 def _check_wavelengths(wavelengths, name="wavelengths") -> np.ndarray:
-    from ._validate import MAX_SPECTRUM_SAMPLES, InputError
-
     size = math.prod(np.shape(wavelengths))  # before a copy is made
     if size > MAX_SPECTRUM_SAMPLES:
         raise InputError(
@@ -259,8 +260,6 @@ def as_sensitivities(sensitivities: Any) -> Callable[[np.ndarray], np.ndarray]:
                 f"colour.MSDS_CAMERA_SENSITIVITIES {tuple(colour.MSDS_CAMERA_SENSITIVITIES)} "
                 "nor an existing rawtoaces JSON file."
             )
-        from .io._sensitivity import load_spectral_sensitivity  # noqa: PLC0415
-
         return _msds_function(load_spectral_sensitivity(p))
     if callable(sensitivities):
         return sensitivities
@@ -396,8 +395,6 @@ def airy_family(radii: Any = None, *, reference: float = 550e-9
 def _check_node_count(k, field: str) -> int:
     """A wavelength count 1 … ``MAX_WAVELENGTHS`` (each is a PSF evaluation), naming
     ``field``."""
-    from ._validate import MAX_WAVELENGTHS, check_number
-
     return check_number(k, field, ge=1, le=MAX_WAVELENGTHS, integer=True,
                         fix="wavelengths per channel; each is a PSF evaluation")
 
@@ -470,8 +467,6 @@ def dense_weights(source: Any, sensitivities: Any, *, band: Any = None, transmis
         support = getattr(sens_f, "support", None)
         band = VISIBLE if support is None else (max(support[0], VISIBLE[0]),
                                                 min(support[1], VISIBLE[1]))
-    from ._validate import MAX_SPECTRUM_SAMPLES, InputError, check_number
-
     lo, hi = (float(b) for b in band)
     if not (0 < lo < hi and math.isfinite(hi)):
         raise ValueError(f"band must be (low, high) metres with 0 < low < high; got {band}.")

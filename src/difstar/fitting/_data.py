@@ -10,6 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from .._cfa import channel_index
+from ..io._images import read_image
+from ..io._raw import RawCapture, read_raw
 from ._params import FitInputError
 from ._parts import Light
 
@@ -103,8 +106,6 @@ class FitData:
 
     @staticmethod
     def from_file(path, **kw) -> FitData:
-        from ..io._images import read_image
-
         im = read_image(path)
         kw.setdefault("pixel_scale", im.pixel_scale)
         mask = im.valid if kw.get("mask") is None else (im.valid & kw.pop("mask"))
@@ -128,9 +129,6 @@ class FitData:
         pattern's phase — any offset works, the mask follows the photosites).
         ``pixel_scale``: arcsec per pixel (pitch / focal length). ``exposure`` and
         ``light``: as for :meth:`from_array` (the channel's band)."""
-        from .._cfa import channel_index
-        from ..io._raw import RawCapture, read_raw
-
         cap = raw if isinstance(raw, RawCapture) else read_raw(raw)
         if channel not in ("R", "G", "B"):
             raise FitInputError(f"FitData.from_raw: channel must be 'R', 'G' or 'B'; got "

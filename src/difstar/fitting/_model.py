@@ -40,6 +40,9 @@ class _Shifted(eqx.Module):
 COMMON = {"rotation": 0.0, "x0": 0.0, "y0": 0.0, "flux": 1.0, "background": 0.0,
           "pixel_scale": 0.03, "shear": 0.0, "aspect": 0.0}
 
+#: the image distortion's parameters (:func:`image_distortion`)
+DISTORTION = ("shear", "aspect")
+
 #: The disc source's parameter: its radius in data pixels.
 SOURCE_DISC = {"source_radius": 1.0}
 
@@ -89,7 +92,9 @@ def parameter_defaults(pupil: PupilBuilder, *, zernike: Sequence[int] = (),
     each Zernike term, a disc source's radius and the response curve's. The one list
     :class:`ImageModel` and a manifest's ``params`` are checked against."""
     others = dict(COMMON) | dict(pupil.defaults) | {f"z{int(j)}": 0.0 for j in zernike}
-    out = dict(COMMON)
+    # the detector's after the pixel scale, before the distortion: the order of the
+    # solver's vector (which a long, flat valley's end can depend on) as it always was
+    out = {k: v for k, v in COMMON.items() if k not in DISTORTION}
     for layer in (Jitter(), *halos):
         mine = layer.parameters
         clash = sorted(set(mine) & (set(out) | set(others) | set(SOURCE_DISC) | set(RESPONSE)))
@@ -99,7 +104,7 @@ def parameter_defaults(pupil: PupilBuilder, *, zernike: Sequence[int] = (),
                                 f"the names {clash} are taken with other parameters of the model; "
                                 "name the halo otherwise.")
         out |= mine
-    out |= others
+    out |= {k: COMMON[k] for k in DISTORTION} | others
     if isinstance(source, str) and source == "disc":
         out |= SOURCE_DISC
     if response:

@@ -30,7 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ._data import FitData, Noise, data_intensity, fainter_copy
+from ._manifest import load_manifest
 from ._params import FitInputError
+from ._procedure import fit
+from ._solve import noise_limited_errors
 
 _PAD = 4  # Lanczos3 reaches 3 px; edge pixels are repeated beyond the border
 _NEEDS_NOISE = ("needs a stage with noise_from_residuals in the manifest (the study needs "
@@ -115,9 +119,6 @@ def fit_changed_copy(manifest, transform, *, max_steps=None, verbose=False):
     image as ``transform(image)`` returns it (:func:`difstar.fitting.load_manifest`'s
     ``transform``: the file's frame, rows down; e.g. ``lambda im: im[:, ::-1]``, the
     mirror image). Returns the copy's FitResult."""
-    from ._manifest import load_manifest
-    from ._procedure import fit
-
     model, data, opts = load_manifest(manifest, transform=transform)
     return fit(model, data, stages=opts["stages"], starts=opts["starts"],
                max_steps=max_steps or opts["max_steps"], verbose=verbose,
@@ -165,9 +166,6 @@ def fit_joint(manifest, changes, *, max_steps=None, verbose=False):
     field, each with its own ``x0``, ``y0``, ``flux``, ``background`` (``name@i``: the
     star is capture 0) and everything else (the pupil, its rotation, the wavefront, the
     detector) shared. Returns the joint FitResult."""
-    from ._manifest import load_manifest
-    from ._procedure import fit
-
     model, data, opts = load_manifest(manifest)
     datas = [data] + [load_manifest(manifest, transform=c)[1] for c in changes]
     return fit(model, datas, stages=opts["stages"], starts=opts["starts"],
@@ -178,8 +176,6 @@ def fit_joint(manifest, changes, *, max_steps=None, verbose=False):
 def _copy_noise(summary, option="--fainter"):
     """The read noise and gain that the manifest's noise_from_residuals estimated
     (result.json's ``noise``): the noise of the fainter copies and of the noise limit."""
-    from ._data import Noise
-
     n = summary.get("noise")
     if n is None:
         raise FitInputError(f"{option} {_NEEDS_NOISE}")
@@ -192,10 +188,6 @@ def fit_fainter_copy(manifest, summary, model_image, factor, seed, *, max_steps=
     noise of draw ``seed`` (:func:`difstar.fitting.fainter_copy`), made from a fit of
     the star: ``summary`` (result.json's content: the background and the noise estimated
     from the residuals) and its ``model_image``. Returns the copy's FitResult."""
-    from ._data import FitData, Noise, fainter_copy
-    from ._manifest import load_manifest
-    from ._procedure import fit
-
     model, data, opts = load_manifest(manifest)
     noise = _copy_noise(summary)
     d = fainter_copy(data, model_image, summary["values"]["background"], factor, noise,
@@ -230,10 +222,6 @@ def noise_limit(manifest, summary, factors=(1.0, 2.0, 4.0, 8.0, 16.0, 32.0), *,
     factor: "factor", "peak_snr" (the fainter star's peak over its σ there), "errors" and
     "errors_read_only" (every free parameter), "error", "error_read_only",
     "error_others_held" (``param`` with every other parameter held) and "p_agree"."""
-    from ._data import data_intensity
-    from ._manifest import load_manifest
-    from ._solve import noise_limited_errors
-
     fs = [float(f) for f in factors]
     if not fs or not all(math.isfinite(f) and f >= 1 for f in fs):
         raise FitInputError(f"noise_limit: factors must be finite and >= 1; got {factors}.")
@@ -367,9 +355,9 @@ def _copy_study(out, name, copies, summary, *, intro, column, verbose, extra=Non
     a function fitting it, the expected change of each value or None) — compare it with
     the star's fit, and write NAME.json and NAME.md into ``out``."""
     rows = []
-    for _, said, fields, fit, expected in copies:
+    for _, said, fields, fit_copy, expected in copies:
         t = time.perf_counter()
-        res = fit()
+        res = fit_copy()
         rows.append({**fields, **_copy_row(res, summary, time.perf_counter() - t, expected)})
         if verbose:
             print(f"{said}: rotation {res.values['rotation']:.4f}° "
@@ -450,8 +438,6 @@ def _check_studies(manifest, loaded, *, fainter=(), shifted=(), contaminated=(),
     """Refuses, before the main fit, studies the manifest cannot run: copies made fainter
     or a noise limit without a noise_from_residuals stage or of several captures, a noise
     limit of a rotation held fixed, a change of the image the manifest's checks refuse."""
-    from ._manifest import load_manifest
-
     model, data, opts = loaded
     for option, asked in (("--fainter", fainter), ("--noise-limit", noise_limit)):
         if not asked:
