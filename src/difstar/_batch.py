@@ -47,8 +47,9 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from . import _distributed
+from ._chain import _finish, check_sampling, geometry_of, simulate
 from ._distributed import DryRun, Launch, _collective, check_lost, dry_run
-from ._validate import InputError
+from ._validate import InputError, memory_budget, memory_limit_from_env
 
 AXIS = "batch"
 ENV_DEVICES = "DIFSTAR_DEVICES"
@@ -168,8 +169,6 @@ def device_memory(device=None) -> int:
     """Bytes free on ``device`` (default the first): ``memory_stats()``'s limit minus
     what is in use where the device reports it (GPUs), else ``DIFSTAR_MEMORY_LIMIT`` or
     the host's memory, shared by the host's devices (CPU devices share it)."""
-    from ._validate import memory_budget, memory_limit_from_env
-
     env_limit = memory_limit_from_env()  # the one parser: a bad value is refused here too
     device = jax.devices()[0] if device is None else device
     try:
@@ -397,8 +396,6 @@ def simulate_spectral(camera, scene, grid, *, devices=None, chunk=None,
     by the channels' normalised weights (the image is linear in the PSF), and the
     background, the sensor, the mosaic and the rendering are applied once to the sum, as
     ``simulate`` does. Returns a :class:`difstar.Prediction` (host arrays)."""
-    from ._chain import _finish, check_sampling, geometry_of, simulate
-
     sen = camera.sensor
     if sen.spectral_weights is None or np.ndim(sen.wavelengths) != 2:
         raise ValueError("difstar simulate_spectral: the camera's sensor is trichromatic "

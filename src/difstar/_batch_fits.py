@@ -34,6 +34,7 @@ from ._batch import (
     plan_chunks,
 )
 from ._distributed import _collective, check_lost, dry_run
+from ._lm import SolveResult, StopRule
 
 
 @dataclasses.dataclass
@@ -98,8 +99,6 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
     they are ``vmap``-ed. In a multi-process job each process steps its own devices' fits
     and the results are gathered at the end.
     """
-    from ._lm import StopRule
-
     u0 = np.asarray(u0)
     n_items = u0.shape[0]
     if _leading(args) != n_items:
@@ -245,8 +244,6 @@ class FitBatcher:
         return req["out"]
 
     def run(self, jobs: list[Callable]):
-        from ._lm import SolveResult
-
         results: list[Any] = [None] * len(jobs)
         errors: list[BaseException | None] = [None] * len(jobs)
         batcher = self

@@ -20,6 +20,7 @@ from ._grid_psf import bin_pixels, intensity_from_atf
 from ._image import DiscSource as DiscSource
 from ._image import PointSource as PointSource
 from ._image import convolve, geometric_image, image_spectrum
+from ._mft import _conv_offsets, focused_image, polygon_intensities, window_rfft2
 from ._model import (
     METHODS as METHODS,
 )
@@ -48,7 +49,9 @@ from ._model import (
     geometry_of as geometry_of,
 )
 from ._otf import otf
+from ._psf import psf
 from ._psf_engine import SamplingError as SamplingError
+from ._pupil import Polygon, RegularPolygon
 from ._radiometry import radiometry
 from ._sampling_rules import (
     check_sampling as check_sampling,
@@ -179,9 +182,6 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
 
 
 def _exact_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
-    from ._mft import focused_image
-    from ._pupil import Polygon, RegularPolygon
-
     pupil = camera.lens.pupil
     if not isinstance(pupil, (Polygon, RegularPolygon)):
         raise ValueError(
@@ -206,9 +206,6 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
     of each pixel centred on it, and the image is their mean (the pixel's integral), the
     PSF their sum: the sum over a pixel grid alone is not the pixel integral of the
     source convolved with an undersampled PSF (``benchmarks/independent_camera.py``)."""
-    from ._mft import _conv_offsets, polygon_intensities, window_rfft2
-    from ._psf import psf
-
     sen = camera.sensor
     q = grid.oversample
     pitch = sen.pixel_pitch / q

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from ._design_measures import Real
+from ._validate import InputError, check_number
 
 
 class LBFGSB(eqx.Module):
@@ -49,8 +50,6 @@ class LBFGSB(eqx.Module):
     first_step: Real = eqx.field(static=True, default=0.1)
 
     def __check_init__(self):
-        from ._validate import check_number
-
         check_number(self.history, "LBFGSB.history", integer=True, ge=1, le=1000,
                      fix="correction pairs kept, e.g. 10")
         check_number(self.tol, "LBFGSB.tol", ge=0,
@@ -88,8 +87,6 @@ def optimiser_kind(optimiser) -> tuple[str, Any]:
     (``"optax"`` | ``"optimistix"`` | ``"lbfgsb"``, the optimiser object), turning the
     names of :data:`OPTIMISERS` (and None, Adam) into their default objects. Anything
     else is refused with the accepted forms."""
-    from ._validate import InputError
-
     if optimiser is None or (isinstance(optimiser, str) and optimiser == "adam"):
         import optax
 

@@ -42,6 +42,7 @@ from ._image import DiscSource
 from ._pupil import RegularPolygon
 from ._radiometry import phi0_from_configuration
 from ._sensor import Response
+from .io._sensitivity import load_spectral_sensitivity
 
 PAPER_CONFIGS = {
     "focused": {"focus_distance": 1.0, "exposure_time": 2.5},
@@ -84,8 +85,6 @@ def paper_sensitivities():
     """The measured Nikon D7000 RGB sensitivities the paper example's colour matrix comes
     from (a ``colour.characterisation.RGB_CameraSensitivities``, nm), for the spectral
     mode."""
-    from .io._sensitivity import load_spectral_sensitivity  # noqa: PLC0415
-
     return load_spectral_sensitivity(PAPER_SENSITIVITY_FILE)
 
 

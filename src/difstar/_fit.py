@@ -50,6 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._batch import device_mesh
 from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, read_out, simulate
 from ._image import DiscSource
 from ._lm import LMStepper, SolveResult, normal_covariance, with_batched_jacobian
@@ -472,8 +473,6 @@ class Fitter:
         self.model = model
         mesh = None
         if devices is not None:
-            from ._batch import device_mesh
-
             mesh = device_mesh(devices)
             mesh = mesh if mesh.size > 1 else None
         #: the mesh the Jacobian's columns are shared out over (None: one device)

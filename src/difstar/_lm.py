@@ -27,6 +27,8 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
+from ._batch import AXIS, P
+
 #: Consecutive rejected steps after which a solve that has moved counts as converged:
 #: the trust region has shrunk by about 2^10 and no nearby point is lower.
 MAX_REJECTED = 10
@@ -94,8 +96,6 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
             return y, aux, jax.lax.map(column, eye, batch_size=b)
 
         if mesh is not None:  # each device its own rows of eye; y is the same on all
-            from ._batch import AXIS, P
-
             columns = jax.shard_map(columns, mesh=mesh, in_specs=(P(AXIS), P(), P()),
                                     out_specs=(P(), P(), P(AXIS)), check_vma=False)
         y, aux, cols = columns(eye, u, args)

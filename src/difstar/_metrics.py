@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ._colour import render_srgb
 from ._custom_types import Array, ArrayLike, Float
 
 # The paper's Table 1 grayscale weights for (R, G, B) (the ITU-R BT.601 luma weights as
@@ -147,8 +148,6 @@ def compare_raw(pred_cfa: Float[ArrayLike, "h w"], obs_cfa: Float[ArrayLike, "h 
                 pattern: str, white_balance: tuple, matrix: tuple):
     """(sRGB of the predicted mosaic, sRGB of the observed one clipped to [0, 1], their
     :func:`table1`): one compiled program per shape (a fit's captures share it)."""
-    from ._colour import render_srgb
-
     m = np.asarray(matrix, float)
     s_pred = render_srgb(pred_cfa, pattern, white_balance=white_balance, matrix=m)
     s_obs = render_srgb(jnp.clip(obs_cfa, 0, 1), pattern, white_balance=white_balance,

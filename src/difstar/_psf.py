@@ -16,7 +16,18 @@ from ._atf import SCALINGS
 from ._custom_types import Array, Float
 from ._psf_engine import DEFAULT_ACCURACY, SAMPLINGS, PSFPlan, SamplingError, evaluate
 from ._psf_engine import plan_psf as plan_window
-from ._pupil import AbstractPupil
+from ._pupil import AbstractPupil, Polygon, RegularPolygon
+from ._validate import (
+    MAX_EXACT_EDGES,
+    InputError,
+    check_memory,
+    check_psf_inputs,
+    check_pupil,
+    check_pupil_cost,
+    check_shape,
+    check_wavelength_count,
+    memory_budget,
+)
 
 
 def _concrete_all(*xs):
@@ -92,9 +103,6 @@ def _plan(pupil, *, wavelength, z_image, defocus, pixel_pitch, shape, sampling, 
     estimate), after the counts were checked (``choose_grid`` plans one engine grid for
     every channel's wavelengths, each channel a call of its own; ``period``: its grid's,
     where ``n`` or ``padding`` set it)."""
-    from ._pupil import Polygon, RegularPolygon
-    from ._validate import MAX_EXACT_EDGES, InputError, check_pupil_cost
-
     check_pupil_cost(pupil, "difstar.psf: pupil")
     n_lam = int(n_eval)
     if scaling not in SCALINGS:
@@ -141,16 +149,12 @@ def _plan(pupil, *, wavelength, z_image, defocus, pixel_pitch, shape, sampling, 
 
 def _check_shape(shape) -> tuple[int, int]:
     """(H, W) whole numbers >= 2 (8.5 is refused, not truncated), naming ``shape``."""
-    from ._validate import check_shape
-
     return check_shape(shape, "difstar.psf: shape", least=2)
 
 
 def _check_counts(pupil, wavelength) -> int:
     """The wavelengths' count (static: works on tracers), refused above
     ``MAX_WAVELENGTHS``, and the pupil's outlines' edges, above ``MAX_EDGES``."""
-    from ._validate import check_pupil_cost, check_wavelength_count
-
     n_lam = math.prod(np.shape(wavelength))
     check_wavelength_count(n_lam, "difstar.psf: wavelength")
     check_pupil_cost(pupil, "difstar.psf: pupil")
@@ -165,8 +169,6 @@ def _bytes(real: bool = True) -> int:
 
 def _edges(pupil) -> int:
     """Straight edges of a polygonal pupil (the closed form's per-edge planes); 0 else."""
-    from ._pupil import Polygon, RegularPolygon
-
     if isinstance(pupil, RegularPolygon):
         return int(pupil.n)
     if isinstance(pupil, Polygon):
@@ -176,8 +178,6 @@ def _edges(pupil) -> int:
 
 def _check_output_memory(pupil, shape, n_lam) -> int:
     """Before planning: the windows alone (one per wavelength, stacked) must fit."""
-    from ._validate import check_memory
-
     h, w = shape
     need = (n_lam + 1) * h * w * _bytes()
     check_memory(need, where="difstar.psf",
@@ -213,8 +213,6 @@ def check_memory_of(plan: PSFPlan, shape, n_wavelengths: int, edges: int,
                     pixel_pitch: float) -> None:
     """:class:`~difstar._validate.InputError` when :func:`psf_bytes` exceeds the memory
     budget (``DIFSTAR_MEMORY_LIMIT``, else the device's or the machine's memory)."""
-    from ._validate import check_memory, memory_budget
-
     need = psf_bytes(plan, shape, n_wavelengths, edges, pixel_pitch)
     budget = memory_budget()
     if need <= budget:
@@ -239,8 +237,6 @@ def check_memory_of(plan: PSFPlan, shape, n_wavelengths: int, edges: int,
 
 
 def _check_inputs(pupil, *, lams, z_r, p, r, dz):
-    from ._validate import check_psf_inputs, check_pupil
-
     check_psf_inputs(wavelength=lams, z_image=z_r, pixel_pitch=p, defocus=dz)
     check_pupil(pupil)
     if not (math.isfinite(r) and r > 0):
@@ -352,8 +348,6 @@ def psf(
         raise TypeError(f"difstar.psf: plan must be a PSFPlan from difstar.plan_psf; got "
                         f"{type(plan).__name__}.")
     else:  # a plan made for another window or wavelengths: its cost here, before any work
-        from ._validate import MAX_EXACT_EDGES, InputError
-
         edges = _check_output_memory(pupil, (h, w), n_lam)
         if plan.method == "exact" and edges > MAX_EXACT_EDGES:
             raise InputError(

@@ -45,6 +45,8 @@ import numpy as np
 
 from ._atf import defocus_phase_coefficient, intensity_bandwidth, pupil_scale
 from ._custom_types import Array, Float
+from ._fft_size import fast_length
+from ._mft import _area, _intensity_plain
 
 
 class SamplingError(ValueError):
@@ -194,8 +196,6 @@ def plan_psf(
         method = "fft" if _fft_cost(m, h, w, nodes, period / p) < _mft_cost(m, h, w, nodes) \
             else "mft"
     if method == "fft" and not given:
-        from ._fft_size import fast_length
-
         period = fast_length(math.ceil(period / p)) * p  # a whole number of pixels
         m = math.ceil(2 * r * period / scale_min) + 4
         m += m % 2
@@ -262,8 +262,6 @@ def exact_window(vertices, wavelength, *, z_image, pixel_pitch, shape, nodes) ->
 
     Dimensionless: the pupil is scaled by β = 2π p/(λ z_R) and the offsets are in
     pixels, so |A(k)|²·p²/((λz)² area) = |A_β(offset)|²/(4π² area_β)."""
-    from ._mft import _area, _intensity_plain
-
     h, w = shape
     beta = (2 * math.pi * pixel_pitch) / (wavelength * z_image)
     wv = vertices * beta

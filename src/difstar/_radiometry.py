@@ -32,6 +32,8 @@ import jax.numpy as jnp
 
 from ._atf import centred_coordinates
 from ._custom_types import Array, Float
+from ._model import geometry_of
+from ._pupil import Circle, Obstructed, Transformed
 
 REFERENCE_F_NUMBER = 22.0
 REFERENCE_SOLID_ANGLE = math.pi / (4.0 * REFERENCE_F_NUMBER**2)  # sr, circular f/22 at ∞
@@ -44,8 +46,6 @@ def pupil_area(pupil) -> Float[Array, ""]:
     one (polygons, regular polygons, curved irises, circles, unions, masks, rigid
     transforms of them, an outer pupil less a central obstruction); otherwise the sum of
     its exact area coverage on a 512² raster over its bounding square (vanes)."""
-    from ._pupil import Circle, Obstructed, Transformed
-
     if isinstance(pupil, Circle):
         return math.pi * pupil.radius**2
     if isinstance(pupil, Transformed):  # a rotation and a shift keep the area
@@ -101,8 +101,6 @@ def radiometry(camera, scene, geometry=None) -> Radiometry:
     jacfwd go through it: the pupil's area and the geometry are differentiable).
     ``geometry`` defaults to :func:`difstar.geometry_of` (camera, scene)."""
     if geometry is None:
-        from ._model import geometry_of
-
         geometry = geometry_of(camera, scene)
     lens = camera.lens
     area = pupil_area(lens.pupil)

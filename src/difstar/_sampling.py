@@ -16,7 +16,9 @@ import numpy as np
 from ._atf import intensity_bandwidth
 from ._fft_size import fast_length as fast_length
 from ._model import Camera, Grid, Scene, geometry_of
+from ._psf import _edges, _plan
 from ._psf_engine import SamplingError
+from ._pupil import Polygon, RegularPolygon
 from ._sampling_rules import (
     _grid_bytes,
     check_cost,
@@ -28,6 +30,14 @@ from ._sampling_rules import (
     pupil_window_for,
     scene_extent,
     source_window_for,
+)
+from ._validate import (
+    MAX_EXACT_EDGES,
+    InputError,
+    check_camera_scene,
+    check_crop,
+    fmt_bytes,
+    memory_budget,
 )
 
 #: Accuracy target used when neither ``accuracy`` nor ``padding`` is given: relative RMS
@@ -86,8 +96,6 @@ def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scal
     overrides :func:`engine_oversample`'s choice). ``n``: the field's period in pixels
     (the paper's n × n grid, from ``choose_grid``'s ``n`` or ``padding``) in place of the
     engine's own rule, transformed by pruned FFTs of length n q."""
-    from ._psf import _plan
-
     g = geometry_of(camera, scene)
     ext = scene_extent(camera, scene)
     window = source_window_for(ext["object_radius_px"])
@@ -154,17 +162,6 @@ def choose_grid(
     rule 1. An override that breaks a rule raises :class:`difstar.SamplingError` naming
     the rule and the value that would satisfy it.
     """
-    from ._psf import _edges
-    from ._pupil import Polygon, RegularPolygon
-    from ._validate import (
-        MAX_EXACT_EDGES,
-        InputError,
-        check_camera_scene,
-        check_crop,
-        fmt_bytes,
-        memory_budget,
-    )
-
     crop = check_crop(crop, "choose_grid: crop")
     check_camera_scene(camera, scene, where="choose_grid")
     budget = memory_budget()

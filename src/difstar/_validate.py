@@ -31,6 +31,8 @@ import re
 
 import numpy as np
 
+from ._geometry import check_geometry
+
 # the sizes accepted and the error type live below the pupils (which count their edges
 # when built); they are re-exported here (__all__)
 from ._limits import (
@@ -49,6 +51,8 @@ from ._limits import (
     InputError,
     check_edge_count,
 )
+from ._pupil import Circle, Obstructed, Polygon, RegularPolygon, Spiders, Struts, Transformed, Union
+from ._pupil_curved import CurvedIris
 
 # -------------------------------------------------------------------------- numbers
 
@@ -239,8 +243,6 @@ def check_polygon_vertices(vertices, field: str = "vertices") -> np.ndarray:
 def _inner_radius(pupil) -> float | None:
     """Largest r with the disc of radius r about the axis inside the pupil (concrete
     values; None when unknown)."""
-    from ._pupil import Circle, Polygon, RegularPolygon
-
     try:
         if isinstance(pupil, RegularPolygon):
             return float(pupil.circumradius) * math.cos(math.pi / pupil.n)
@@ -261,8 +263,6 @@ def _inner_radius(pupil) -> float | None:
 
 def check_obstruction(pupil, field: str = "camera.lens.pupil") -> None:
     """An Obstructed pupil's central obstruction must leave light through the pupil."""
-    from ._pupil import Obstructed
-
     if not isinstance(pupil, Obstructed) or pupil.obstruction is None:
         return
     r_in = _inner_radius(pupil.outer)
@@ -280,8 +280,6 @@ def check_camera_scene(camera, scene, *, where: str = "") -> None:
     """Physical consistency of concrete camera and scene values, naming the field:
     finite values, positive where they must be, the object beyond what the lens can
     focus, an obstruction inside the pupil. Traced values pass through."""
-    from ._geometry import check_geometry
-
     p = f"{where}: " if where else ""
     lens, sen = camera.lens, camera.sensor
     # counts first (static shapes: cheap, and before any per-element work)
@@ -468,9 +466,6 @@ def check_wavelength_count(count: int, field: str) -> None:
 def _outline_counts(pupil, field: str):
     """(field, count, what) for every outline or vane set in ``pupil`` (static shapes
     only: works on traced pupils)."""
-    from ._pupil import Obstructed, Polygon, RegularPolygon, Spiders, Struts, Transformed, Union
-    from ._pupil_curved import CurvedIris
-
     stack = [(pupil, field)]
     while stack:
         p, f = stack.pop()

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from ..io._images import read_image
+from ..io._json import SceneError, check_float32_doc, load_schema, read_json_extends, validate
 from ._auto import auto_stages
 from ._data import FitData, Noise
 from ._detector import halos_of
@@ -50,8 +52,6 @@ def resolve_data_path(path: str, manifest_dir, *, field: str | None = None,
 
 def _read_at(file: str, field: str, source: str):
     """:func:`difstar.io.read_image` of ``file``, its errors naming the manifest's field."""
-    from ..io._images import read_image
-
     try:
         return read_image(file)
     except (ValueError, OSError) as e:
@@ -250,8 +250,6 @@ def _known_keys(man: Mapping, src: str) -> None:
     """A key the manifest's schema does not know, in an object with a fixed set of keys
     (a typo would otherwise be refused by the schema without the keys it knows, or passed
     over): refused naming its field and the known keys."""
-    from ..io._json import load_schema
-
     schema = load_schema("image_fit_manifest")
     props, defs = schema["properties"], schema["$defs"]
 
@@ -404,8 +402,6 @@ PATH_KEYS = frozenset({"path", "sigma", "image"})
 def manifest_document(path):
     """(the image-fit manifest's JSON as :func:`load_manifest` reads it: strict, its
     ``extends`` merged; the files read, this one first), before any check."""
-    from ..io._json import read_json_extends
-
     return read_json_extends(path, what="manifest", path_keys=PATH_KEYS)
 
 
@@ -435,8 +431,6 @@ def load_manifest(path, *, transform=None):
     ``"auto"`` starts, checks; a σ map is not changed). Pixels it makes NaN are left out.
     :func:`difstar.fitting.fit_changed_copy` fits such a copy."""
     from pathlib import Path
-
-    from ..io._json import SceneError, check_float32_doc, validate
 
     path = Path(path)
     src = str(path)

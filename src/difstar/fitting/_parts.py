@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._pupil import Circle, Obstructed, Struts, hex_segments
+from .._pupil_curved import CurvedIris
 from .._validate import MAX_WAVELENGTHS
 from ._params import FitInputError
 
@@ -82,8 +83,6 @@ def iris_pupil(blades: int = 7, radius: float = 1.2e-3) -> PupilBuilder:
     Parameters: ``iris_radius`` (circumradius, metres; the aperture's radius is focal
     length / (2 N)) and ``curvature`` (each edge's relative curvature, R·κ: 0 straight,
     1 an arc of the circle through the vertices)."""
-    from .._pupil_curved import CurvedIris
-
     if not isinstance(blades, (int, np.integer)) or blades < 3:
         raise FitInputError(f"iris_pupil: blades must be an integer >= 3; got {blades!r}.")
 

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._lm import normal_covariance
+from .._lm import LMStepper, normal_covariance, with_batched_jacobian
 from .._param import step_map
 from .._progress import moved_most, step_bar
 from ._centred import centred_psf, fine_factor, image_from_centred, optics_fixed
@@ -305,8 +305,6 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                 atol: float, ftol: float, label: str | None):
     """One Levenberg–Marquardt solve of ``model``'s free parameters on its PSF plan; the
     flux and background of :func:`projected_names` in closed form at every step."""
-    from .._lm import LMStepper, with_batched_jacobian
-
     lin = projected_names(model, model.free, target)
     free = [k for k in model.free if k not in lin]
     fixed = {k: jnp.asarray(p.value, float) for k, p in model.params.items() if not p.free}
@@ -411,8 +409,6 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
     a few columns at a time (:func:`difstar._lm.with_batched_jacobian`); with
     ``residual``, also the residual and the model images (from the same program: the
     linearisation's primal values)."""
-    from .._lm import with_batched_jacobian
-
     free = model.free
     base = {k: jnp.asarray(v, float) for k, v in values.items()}
 

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from .._psf import _edges, psf_bytes
+from .._validate import fmt_bytes, memory_budget
 from ._analysis import _scan, _scan_problem, spike_target
 from ._data import FitData, noise_from_residuals, reject_outliers
 from ._model import ImageModel
@@ -364,9 +366,6 @@ def _check_fit_memory(model: ImageModel, datas: Sequence[FitData]) -> None:
     """Refuse (before any compile) a fit whose Jacobian cannot fit in memory: the
     largest capture's padded window, its plan, the free parameters; the estimate is a
     lower one, so a refused fit would certainly not have fitted."""
-    from .._psf import _edges, psf_bytes
-    from .._validate import fmt_bytes, memory_budget
-
     h, w = max((d.image.shape for d in datas), key=lambda s: s[0] * s[1])
     shape = model.padded_shape((h, w))
     try:

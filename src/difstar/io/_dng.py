@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._colour import xyz_to_srgb_linear_matrix
+
 Real = float | int | np.integer | np.floating  # a real scalar (Python or NumPy)
 
 BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
@@ -226,8 +228,6 @@ def dng_colour_matrix(colour_matrix, white_balance) -> np.ndarray:
     sum to 1 (M · (1, 1, 1) = (1, 1, 1)), as colour matrices are normalised.
     """
     import colour  # noqa: PLC0415  (lazy: keep `import difstar` cheap)
-
-    from .._colour import xyz_to_srgb_linear_matrix
 
     m = np.asarray(colour_matrix, float)
     wb = np.ravel(np.asarray(white_balance, float))

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._dng import dng_colour_matrix, write_dng
+
 
 def _srgb_icc() -> bytes:
     """An ICC profile of sRGB (IEC 61966-2-1, D65), LittleCMS's built-in one via Pillow."""
@@ -63,8 +65,6 @@ def write_raw_dng(path: str | Path, cfa, *, pattern: str, white_balance, colour_
     AsShotNeutral = 1/``white_balance`` (G = 1), and ``Software`` = difstar.
     ``exposure_time`` (s) and ``focal_length`` (m) go to EXIF when given. Any even size is
     written; LibRaw (rawpy, darktable, RawTherapee) opens only ≥ 22 × 22 pixels."""
-    from ._dng import dng_colour_matrix, write_dng
-
     z = np.clip(np.asarray(cfa, float), 0.0, 1.0)
     raw = (black_level + np.round(z * (white_level - black_level))).astype(np.uint16)
     write_dng(path, raw, pattern=pattern, black_level=black_level, white_level=white_level,

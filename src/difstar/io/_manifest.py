@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._fit import param_shape, zernike_index
+from .._geometry import check_geometry
 from ._json import check_float32_doc, read_json_extends
 from ._scene import SceneError, validate
 
@@ -99,8 +101,6 @@ def load_manifest(path: str | Path) -> Manifest:
 def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifest:
     """Validate ``doc`` and resolve it (``path`` names it in errors and anchors the
     capture files)."""
-    from .._fit import param_shape, zernike_index
-
     path = Path(path)
     src = str(path)
     validate(doc, "fit_manifest", source=src)
@@ -280,8 +280,6 @@ def _check_sign(kind: str, a: np.ndarray, where: str) -> None:
 def _check_geometry(cam: dict, c: dict, where: str) -> None:
     """The same geometry ``difstar predict`` accepts: object and focus beyond what the
     lens can focus."""
-    from .._geometry import check_geometry
-
     for key in ("object_distance", "focus_distance"):
         try:
             check_geometry(focal_length=float(cam["focal_length"]),

@@ -57,6 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._distributed import writes_output
 from .._validate import InputError
 
 try:  # POSIX; elsewhere no lock can be checked, so no temporary folder is ever removed
@@ -394,8 +395,6 @@ def _signals_raise():
 def _writes_output() -> bool:
     """Whether this process writes the outputs: :func:`difstar._distributed.writes_output`
     (process 0 of a multi-process job, or a process alone)."""
-    from .._distributed import writes_output
-
     return writes_output()
 
 

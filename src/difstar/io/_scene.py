@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._validate import InputError, check_camera_scene, check_polygon_vertices
+from .._validate import InputError, _inner_radius, check_camera_scene, check_polygon_vertices
 from ._json import (  # noqa: F401
     SceneError,
     _short,
@@ -49,8 +49,6 @@ def _pupil_from_dict(d: dict, *, focal_length: float, m_p: float, where: str,
                                  where=where + "/outer", source=source)
         obs = None
         if "obstruction_radius" in d:
-            from .._validate import _inner_radius
-
             r_in = _inner_radius(outer)
             if r_in is not None and not d["obstruction_radius"] < r_in:
                 raise SceneError(

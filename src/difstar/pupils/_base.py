@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._custom_types import Array, Float
+from .._limits import MAX_BUILD_EDGES, check_edge_count
 from ._raster import _safe_norm, outline_coverage, tiled_outline_coverage
 
 
@@ -95,8 +96,6 @@ def _check_ccw_simple(v: np.ndarray, name: str) -> None:
 def _check_build_count(count, field: str, what: str) -> None:
     """At most ``MAX_BUILD_EDGES`` vertices / blades / vanes when a pupil is built (a
     static count; difstar.psf and simulate take at most ``MAX_EDGES`` per outline)."""
-    from .._limits import MAX_BUILD_EDGES, check_edge_count
-
     check_edge_count(int(count), field, what, most=MAX_BUILD_EDGES)
 
 def _segments_cross(p1, p2, p3, p4) -> bool:

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._custom_types import Array, Float
-from ._base import AbstractPupil
+from ._base import AbstractPupil, _check_build_count
 from ._raster import _safe_norm, outline_coverage, tiled_outline_coverage
 
 
@@ -106,8 +106,6 @@ class CurvedIris(AbstractPupil):
             raise ValueError(f"CurvedIris.n must be an integer >= 3 (blade count); got {n!r}.")
         if not isinstance(segments, (int, np.integer)) or segments < 2:
             raise ValueError(f"CurvedIris.segments must be an integer >= 2; got {segments!r}.")
-        from ._base import _check_build_count
-
         _check_build_count(n, "CurvedIris.n", "blades")
         _check_build_count(int(n) * int(segments), "CurvedIris.n x segments",
                            "edges (blades x segments)")
