@@ -72,6 +72,23 @@ def test_a_stage_run_again_reuses_its_program_and_sees_the_new_data(stars, trace
     assert again[1].values["x0"] == pytest.approx(-0.4, abs=0.05)
 
 
+def test_a_stage_with_other_tolerances_shares_the_program(stars, traces):
+    """The solver's tolerances are arguments of its program: a stage with another rtol
+    is not traced again, and its answer is the one a freshly traced program with that
+    rtol gives (a looser rtol stops no later)."""
+    a = stars[0]
+    model = _model()
+    tight = fit(model, a, stages=[{"free": "all", "rtol": 1e-8}], max_steps=40)
+    n = traces[0]
+    loose = fit(model, a, stages=[{"free": "all", "rtol": 1e-2}], max_steps=40)
+    assert traces[0] == n, "another rtol traced the stage again"
+    assert loose.steps <= tight.steps
+    _programs.release_programs()
+    fresh = fit(_model(), a, stages=[{"free": "all", "rtol": 1e-2}], max_steps=40)
+    np.testing.assert_allclose(_values(loose), _values(fresh), rtol=1e-9, atol=1e-9)
+    assert loose.steps == fresh.steps
+
+
 def test_what_changes_a_trace_gets_a_program_of_its_own(stars, traces):
     a = stars[0]
     stage = [{"free": "all"}]

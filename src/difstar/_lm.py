@@ -167,29 +167,30 @@ class SolveResult:
 
 class LMStepper:
     """Compiled solver steps for ``fn(u, args) -> residuals`` (``method`` "lm":
-    Levenberg–Marquardt; "gn": Gauss–Newton with QR)."""
+    Levenberg–Marquardt; "gn": Gauss–Newton with QR).
+
+    The tolerances ``rtol`` and ``atol`` are arguments of the compiled programs, not
+    constants of them: a solve may give its own (:meth:`solve`) and still run the
+    programs another solve compiled (a fit's stages with other tolerances share them)."""
 
     def __init__(self, fn: Callable, *, method: str = "lm", rtol: float = 1e-6,
                  atol: float = 1e-6, has_aux: bool = False):
         # has_aux: fn returns (residuals, aux); the solve's result then carries the aux
         # of its answer (SolveResult.aux), from the step that accepted it
         wrapped = fn if has_aux else (lambda u, a: (fn(u, a), None))
-        if method == "lm":
-            sol = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-        elif method == "gn":
-            sol = optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.QR())
-        else:
+        if method not in ("lm", "gn"):
             raise ValueError(f"solver method must be 'lm' or 'gn'; got {method!r}")
         self.method = method
+        self.rtol, self.atol = float(rtol), float(atol)
         tags = frozenset()
 
         @eqx.filter_jit
-        def init(u, a):
+        def init(sol, u, a):
             f_struct, aux_struct = jax.eval_shape(lambda: wrapped(u, a))
             return sol.init(wrapped, u, a, {}, f_struct, aux_struct, tags)
 
         @eqx.filter_jit
-        def step(u, state, a):
+        def step(sol, u, state, a):
             u, state, _ = sol.step(wrapped, u, a, {}, state, tags)
             done, res = sol.terminate(wrapped, u, a, {}, state, tags)
             leaves = jax.tree_util.tree_leaves(state.f_info.residual)
@@ -206,7 +207,25 @@ class LMStepper:
                                  jax.tree_util.tree_leaves(state.f_info.residual)])
             return state.f_info.jac.as_matrix(), r
 
-        self._init, self._step, self._linearisation = init, step, linearisation
+        self._init_with, self._step_with = init, step
+        self._linearisation = linearisation
+
+    def solver(self, rtol: float | None = None, atol: float | None = None):
+        """The optimistix solver with these tolerances (default: the stepper's), as
+        arrays: arguments of the compiled programs."""
+        rtol = jnp.asarray(self.rtol if rtol is None else float(rtol), float)
+        atol = jnp.asarray(self.atol if atol is None else float(atol), float)
+        if self.method == "lm":
+            return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.QR())
+
+    def _init(self, u, a):
+        """The solver's first state at ``u`` (the stepper's tolerances)."""
+        return self._init_with(self.solver(), u, a)
+
+    def _step(self, u, state, a):
+        """One step from ``u``, ``state`` (the stepper's tolerances)."""
+        return self._step_with(self.solver(), u, state, a)
 
     def linearisation(self, result: SolveResult):
         """(J, r) at ``result.u``: the flattened residuals (leaves in tree order) and
@@ -218,12 +237,14 @@ class LMStepper:
         return np.asarray(j), np.asarray(r)
 
     def solve(self, u0, args, *, max_steps: int = 100, ftol: float = 1e-6,
-              progress: Callable[[int, float, float, bool, np.ndarray], None] | None = None
-              ) -> SolveResult:
+              progress: Callable[[int, float, float, bool, np.ndarray], None] | None = None,
+              rtol: float | None = None, atol: float | None = None) -> SolveResult:
         """Run up to ``max_steps`` steps from ``u0``; ``progress(k, loss, step_size,
         done, u)`` is called after each (loss of the last accepted point ``u``; the LM
-        step size is the trust-region scale, 1/damping)."""
-        state = self._init(u0, args)
+        step size is the trust-region scale, 1/damping). ``rtol``, ``atol``: this solve's
+        tolerances (default: the stepper's), without a new compile."""
+        sol = self.solver(rtol, atol)
+        state = self._init_with(sol, u0, args)
         u = u0
         loss0 = None
         loss = float("nan")
@@ -234,7 +255,8 @@ class LMStepper:
         t0 = time.perf_counter()
         for k in range(1, max_steps + 1):
             t1 = time.perf_counter()
-            u, state, done_a, ok_a, loss_a, size, acc_a = self._step(u, state, args)
+            u, state, done_a, ok_a, loss_a, size, acc_a = self._step_with(sol, u, state,
+                                                                          args)
             loss = float(loss_a)
             if k == 1:
                 t_compile = time.perf_counter() - t1

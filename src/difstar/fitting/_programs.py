@@ -5,8 +5,8 @@ its solver, χ² and Jacobian programs here instead of tracing and compiling the
 A program is keyed by everything its trace depends on besides its arguments
 (:func:`trace_key`): the model's construction and options, each capture's window shape,
 exposure and light, each target's kind, the PSF plans, and what the caller adds (the
-free parameters and their bounds, the solver's tolerances). The values, σ, masks and
-spike windows are the programs' arguments, so they may change between calls.
+free parameters and their bounds). The values, σ, masks, spike windows and the solver's
+tolerances are the programs' arguments, so they may change between calls.
 
 Memory is bounded by design: at most :data:`MAX_PROGRAMS` programs are kept; when one
 more is needed, all are dropped together with JAX's own caches (which keep a program's

@@ -338,7 +338,7 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
         # residuals' aux: the solver's state holds them at its answer, so no other
         # program computes them
         residuals = jax.jit(with_batched_jacobian(residuals_and_linear, has_aux=True))
-        return LMStepper(residuals, rtol=rtol, atol=atol, has_aux=True)
+        return LMStepper(residuals, has_aux=True)  # tolerances: each solve's own
 
     # the fixed values, the unbounded parameters' starts and the data are the solver's
     # arguments, not constants of its program: the same stage run again (a repeat's
@@ -356,7 +356,7 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     args = (fixed, steps, [t.arrays for t in _as_list(target)], psfs)
     key, keep = trace_key(model, datas, _as_list(target))
     stepper = program(("solve", key, tuple(free), tuple(p.bounds for p in params),
-                       tuple(lin), float(rtol), float(atol), psfs is not None), make, keep)
+                       tuple(lin), psfs is not None), make, keep)
     u0 = jnp.asarray([_to_u(p) for p in params], float)
     with step_bar(label, max_steps) as progress:
         last = [np.asarray(u0)]
@@ -372,7 +372,8 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                 last[0] = u
                 progress(f"χ² {2 * loss:.6g}, moved most: {name or '-'}")
 
-        sol = stepper.solve(u0, args, max_steps=max_steps, ftol=ftol, progress=checked)
+        sol = stepper.solve(u0, args, max_steps=max_steps, ftol=ftol, progress=checked,
+                            rtol=rtol, atol=atol)
     ok = sol.result == "converged"
     status = {"converged": "converged", "failed": "not converged: the solver failed",
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
