@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from difstar.fitting import (
+    DiscSource,
     FitData,
     FitInputError,
     Halo,
@@ -24,6 +25,7 @@ from difstar.fitting import (
     Light,
     Param,
     Solve,
+    SourceImage,
     chi2_slice,
     fit,
     iris_pupil,
@@ -882,6 +884,34 @@ def test_user_image_source():
     assert res.chi2_dof < 2.0
 
 
+def test_source_layers_as_classes():
+    """The source is a layer like the detector's: ``source="disc"`` is
+    ``DiscSource()`` (the same parameters and image), and a ``SourceImage``'s transfer
+    on a window's frequencies is NumPy's FFT of the image wrapped about its centre
+    pixel on that window (an exact transform, to 1e-13), for odd and even windows; the
+    caller's array is never changed."""
+    light = Light.monochromatic(LAM)
+    base = {"pixel_scale": Param(P), "source_radius": Param(1.3)}
+    by_name = ImageModel(obstructed_circle_pupil(), base, light=light, source="disc", pad=4)
+    by_class = ImageModel(obstructed_circle_pupil(), base, light=light, source=DiscSource(),
+                          pad=4)
+    assert list(by_name.params) == list(by_class.params)
+    assert by_class.units["source_radius"] == "data px"
+    np.testing.assert_array_equal(by_name((15, 15)), by_class((15, 15)))
+    src = np.random.default_rng(3).uniform(0, 1, (5, 4))
+    kept = src.copy()
+    layer = SourceImage(src)
+    for hp, wp in ((23, 23), (22, 17), (16, 30)):
+        big = np.zeros((hp, wp))
+        big[:5, :4] = src / src.sum()
+        want = np.fft.rfft2(np.roll(big, (-2, -2), axis=(0, 1)))
+        got = layer.transfer({}, np.fft.rfftfreq(wp)[None, :], np.fft.fftfreq(hp)[:, None])
+        np.testing.assert_allclose(got, want, atol=1e-13)
+    np.testing.assert_array_equal(src, kept)
+    point = ImageModel(obstructed_circle_pupil(), {}, light=light)
+    assert point.source is None and "source_radius" not in point.params
+
+
 def test_source_response_and_exposure_inputs_are_checked():
     light = Light.monochromatic(LAM)
     with pytest.raises(FitInputError, match="source"):
@@ -909,7 +939,7 @@ def test_disc_transform_against_scipy():
     import jax
     import scipy.special as sp
 
-    from difstar.fitting._model import disc_transform
+    from difstar.fitting._detector import disc_transform
 
     x = np.linspace(1e-6, 150.0, 20001)
     np.testing.assert_allclose(np.asarray(disc_transform(x)), 2 * sp.j1(x) / x, atol=5e-9)

@@ -61,10 +61,12 @@ from ._data import fainter_copy as fainter_copy
 from ._data import noise_from_residuals as noise_from_residuals
 from ._data import reject_outliers as reject_outliers
 from ._detector import DetectorLayer as DetectorLayer
+from ._detector import DiscSource as DiscSource
 from ._detector import Halo as Halo
 from ._detector import Jitter as Jitter
 from ._detector import NativePixel as NativePixel
 from ._detector import Resampling as Resampling
+from ._detector import SourceImage as SourceImage
 from ._manifest import load_manifest as load_manifest
 from ._manifest import resolve_data_path as resolve_data_path
 from ._model import ImageModel as ImageModel
@@ -94,9 +96,9 @@ from ._studies import noise_limit as noise_limit
 from ._studies import shifted_image as shifted_image
 
 __all__ = [
-    "DetectorLayer", "FitData", "FitInputError", "FitResult", "Halo", "Hop", "ImageModel",
-    "Jitter", "Light", "NativePixel", "Noise", "Param", "PupilBuilder", "Repeat", "Resampling",
-    "Restart", "Solve", "auto_stages", "chi2_at", "chi2_slice",
+    "DetectorLayer", "DiscSource", "FitData", "FitInputError", "FitResult", "Halo", "Hop",
+    "ImageModel", "Jitter", "Light", "NativePixel", "Noise", "Param", "PupilBuilder", "Repeat",
+    "Resampling",    "Restart", "Solve", "SourceImage", "auto_stages", "chi2_at", "chi2_slice",
     "contaminated_image", "data_intensity",
     "fainter_copy", "fit", "fit_changed_copy", "fit_contaminated_copy", "fit_fainter_copy",
     "fit_joint", "fit_shifted_copy", "iris_pupil", "jwst_pupil", "load_manifest", "model_images",

@@ -24,11 +24,10 @@ import numpy as np
 
 from ._params import ARCSEC
 
-#: the parameters one PSF at the star's centre serves besides the detector layers' (the
-#: jitter's, the halos'): a move of the star is a phase ramp of its spectrum, the rest
-#: act after the optics
-AFTER_OPTICS = frozenset({"x0", "y0", "flux", "background", "source_radius", "white", "toe",
-                          "knee"})
+#: the parameters one PSF at the star's centre serves besides the layers' after the
+#: optics (the jitter's, the halos', a disc source's radius): a move of the star is a
+#: phase ramp of its spectrum, the rest act after the optics
+AFTER_OPTICS = frozenset({"x0", "y0", "flux", "background", "white", "toe", "knee"})
 
 
 def optics_fixed(model, free: Sequence[str]) -> bool:
@@ -37,7 +36,7 @@ def optics_fixed(model, free: Sequence[str]) -> bool:
     the optics, and nothing after them is defined on the data's pixels alone (a
     co-add's resampling kernel, a source image)."""
     after = AFTER_OPTICS.union(*(layer.parameters for layer in model.layers))
-    return (bool(free) and not model.resampling and isinstance(model.source, str)
+    return (bool(free) and not model.has_data_grid_kernel
             and all(k.split("@")[0] in after for k in free))
 
 

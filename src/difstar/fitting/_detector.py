@@ -1,6 +1,7 @@
-"""The detector's layers: what acts on a star's image after the optics, each a class
-with its named parameters (defaults and units) and its transfer function, the factor it
-multiplies the image's spectrum by (frequencies in cycles per data pixel).
+"""The layers after the optics: what acts on a star's image as a factor of its
+spectrum, each a class with its named parameters (defaults and units) and its transfer
+function (frequencies in cycles per data pixel) — the detector's, and the source's
+extent (a disc, an image) where the source is not a point.
 
 :class:`ImageModel` composes them: a :class:`Jitter`, a list of :class:`Halo` layers
 (each named by its user), a :class:`NativePixel` for oversampled data, and a
@@ -156,6 +157,96 @@ class Resampling(DetectorLayer):
         return lanczos_transfer(fx, self.order) * lanczos_transfer(fy, self.order)
 
 
+def disc_transform(x):
+    """2 J1(x) / x, the Fourier transform of a uniform disc of unit area at
+    x = 2π f R (f cycles per pixel, R the radius in pixels); 1 at x = 0. J1 by the
+    rational and asymptotic approximations of Hart (Numerical Recipes' bessj1), to
+    about 1e-8, smooth in x for gradients."""
+    x = jnp.abs(jnp.asarray(x, float))
+    y = x * x
+    p = 72362614232.0 + y * (-7895059235.0 + y * (242396853.1 + y * (
+        -2972611.439 + y * (15704.48260 + y * (-30.16036606)))))
+    q = 144725228442.0 + y * (2300535178.0 + y * (18583304.74 + y * (
+        99447.43394 + y * (376.9991397 + y))))
+    small = 2.0 * p / q  # 2 J1(x)/x for x < 8 (J1 = x p/q)
+    xb = jnp.maximum(x, 8.0)
+    z = 8.0 / xb
+    y2 = z * z
+    xx = xb - 2.356194491
+    a1 = 1.0 + y2 * (0.183105e-2 + y2 * (-0.3516396496e-4 + y2 * (
+        0.2457520174e-5 + y2 * (-0.240337019e-6))))
+    a2 = 0.04687499995 + y2 * (-0.2002690873e-3 + y2 * (0.8449199096e-5 + y2 * (
+        -0.88228987e-6 + y2 * 0.105787412e-6)))
+    big = 2.0 * jnp.sqrt(0.636619772 / xb) * (jnp.cos(xx) * a1 - z * jnp.sin(xx) * a2) / xb
+    return jnp.where(x < 8.0, small, big)
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscSource(DetectorLayer):
+    """The source a uniform disc of radius ``source_radius`` data pixels (a resolved
+    star, a lamp behind a pinhole) instead of a point: its transform, 2 J1(x)/x at
+    x = 2π f R (:func:`disc_transform`), multiplies the image's spectrum."""
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        return {"source_radius": 1.0}
+
+    @property
+    def units(self) -> dict[str, str]:
+        return {"source_radius": "data px"}
+
+    def transfer(self, v, fx, fy):
+        return disc_transform(2 * math.pi * np.sqrt(fx**2 + fy**2) * v["source_radius"])
+
+
+class SourceImage(DetectorLayer):
+    """The source as the data's pixels would see it: a 2-D array of finite, non-negative
+    values with a positive sum (any size up to the padded window), its centre pixel
+    (shape // 2) at the star's position. Acts on the data's pixels: its transfer is the
+    array's discrete transform (unit sum) at the data grid's frequencies, by two matrix
+    products (the same numbers as a periodic FFT of the window), kept per grid."""
+
+    on_data_grid: ClassVar[bool] = True
+
+    def __init__(self, image):
+        a = np.asarray(image, dtype=float)
+        if a.ndim != 2 or not np.all(np.isfinite(a)) or np.any(a < 0) or not a.sum() > 0:
+            raise FitInputError("ImageModel: a source image must be a 2-D array of finite, "
+                                "non-negative values with a positive sum.")
+        self.image = a / a.sum()  # a copy: the caller's array is never changed
+        self._spectra: dict = {}
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.image.shape
+
+    def transfer(self, v, fx, fy):
+        fy = np.ravel(np.asarray(fy, float))
+        fx = np.ravel(np.asarray(fx, float))
+        key = (fy.tobytes(), fx.tobytes())
+        if key not in self._spectra:
+            sh, sw = self.image.shape
+            dy = np.arange(sh) - sh // 2  # offsets from the centre pixel
+            dx = np.arange(sw) - sw // 2
+            ey = np.exp(-2j * np.pi * np.outer(fy, dy))
+            ex = np.exp(-2j * np.pi * np.outer(dx, fx))
+            self._spectra[key] = ey @ self.image @ ex  # NumPy: a constant in any trace
+        return self._spectra[key]
+
+
+def source_of(source):
+    """The source layer for ``source``: None for "point"; :class:`DiscSource` for
+    "disc"; a :class:`SourceImage` for a 2-D array; a layer as it is."""
+    if isinstance(source, (DiscSource, SourceImage)) or source is None:
+        return source
+    if isinstance(source, str):
+        if source not in ("point", "disc"):
+            raise FitInputError(f"ImageModel: source must be 'point', 'disc' or an image "
+                                f"(2-D array); got {source!r}.")
+        return DiscSource() if source == "disc" else None
+    return SourceImage(source)
+
+
 def halos_of(given) -> tuple[Halo, ...]:
     """The halos a model is given: None (one, ``halo``), or a list of :class:`Halo`,
     names, or ``{"name": ..., "width": ...}`` (as a manifest's ``detector.halos``
@@ -187,5 +278,6 @@ def halos_of(given) -> tuple[Halo, ...]:
     return tuple(out)
 
 
-__all__ = ["DetectorLayer", "Halo", "Jitter", "NativePixel", "Resampling", "halos_of",
-           "lanczos_kernel", "lanczos_transfer"]
+__all__ = ["DetectorLayer", "DiscSource", "Halo", "Jitter", "NativePixel", "Resampling",
+           "SourceImage", "disc_transform", "halos_of", "lanczos_kernel", "lanczos_transfer",
+           "source_of"]

@@ -338,7 +338,9 @@ def _params_of(man: Mapping, kind: str, builder: PupilBuilder, auto: Mapping,
     det = man.get("detector", {})
     try:
         known = set(parameter_defaults(builder, zernike=man.get("zernike", ()),
-                                       source=man.get("source", "point"),
+                                       # an image source ({"image": file}) adds none
+                                       source=("disc" if man.get("source") == "disc"
+                                               else None),
                                        response=bool(det.get("response", False)),
                                        halos=_halos(det, src)))
     except FitInputError as e:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 import re
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -19,7 +18,16 @@ from .._pupil import distorted
 from .._sensor import response_curve
 from .._zernike import Zernike
 from ._centred import fine_factor, pixels_from_fine
-from ._detector import Halo, Jitter, NativePixel, Resampling, halos_of
+from ._detector import (
+    DiscSource,
+    Halo,
+    Jitter,
+    NativePixel,
+    Resampling,
+    SourceImage,
+    halos_of,
+    source_of,
+)
 from ._params import _PITCH, ARCSEC, FitInputError, _as_param
 from ._parts import Light, PupilBuilder
 
@@ -43,9 +51,6 @@ COMMON = {"rotation": 0.0, "x0": 0.0, "y0": 0.0, "flux": 1.0, "background": 0.0,
 #: the image distortion's parameters (:func:`image_distortion`)
 DISTORTION = ("shear", "aspect")
 
-#: The disc source's parameter: its radius in data pixels.
-SOURCE_DISC = {"source_radius": 1.0}
-
 #: The detector's response curve (:func:`difstar._sensor.response_curve`): the image is
 #: ``white`` · Z(I / ``white``; ``toe``, ``knee``) + background, I the linear image.
 RESPONSE = {"white": 1.0, "toe": 0.0, "knee": 60.0}
@@ -57,7 +62,7 @@ UNITS = {"rotation": "deg, counter-clockwise", "x0": "data px right of centre",
          "y0": "data px down from centre", "pixel_scale": "arcsec per data px",
          "flux": "data units x exposure", "background": "data units",
          "shear": "1", "aspect": "1",
-         "source_radius": "data px", "white": "data units", "toe": "1, of I / white",
+         "white": "data units", "toe": "1, of I / white",
          "knee": "1", "flat_to_flat": "m", "gap": "m", "obstruction": "m, radius",
          "strut_width": "m", "strut_spread": "deg", "strut_tilt": "deg, from 90",
          "incoherent": "1, fraction of the light", "radius": "m",
@@ -97,7 +102,7 @@ def parameter_defaults(pupil: PupilBuilder, *, zernike: Sequence[int] = (),
     out = {k: v for k, v in COMMON.items() if k not in DISTORTION}
     for layer in (Jitter(), *halos):
         mine = layer.parameters
-        clash = sorted(set(mine) & (set(out) | set(others) | set(SOURCE_DISC) | set(RESPONSE)))
+        clash = sorted(set(mine) & (set(out) | set(others) | set(RESPONSE)))
         if clash:
             who = getattr(layer, "name", "jitter")
             raise FitInputError(f"halos: the halo {who!r} has the parameters {sorted(mine)}: "
@@ -105,48 +110,12 @@ def parameter_defaults(pupil: PupilBuilder, *, zernike: Sequence[int] = (),
                                 "name the halo otherwise.")
         out |= mine
     out |= {k: COMMON[k] for k in DISTORTION} | others
-    if isinstance(source, str) and source == "disc":
-        out |= SOURCE_DISC
+    layer = source_of(source)
+    if layer is not None:
+        out |= layer.parameters
     if response:
         out |= RESPONSE
     return out
-
-def _source_kind(source):
-    """"point", "disc" or a user image (a 2-D array of non-negative finite values with a
-    positive sum; its centre pixel (shape // 2) is the star's position)."""
-    if isinstance(source, str):
-        if source not in ("point", "disc"):
-            raise FitInputError(f"ImageModel: source must be 'point', 'disc' or an image "
-                                f"(2-D array); got {source!r}.")
-        return source
-    a = np.asarray(source, dtype=float)
-    if a.ndim != 2 or not np.all(np.isfinite(a)) or np.any(a < 0) or not a.sum() > 0:
-        raise FitInputError("ImageModel: a source image must be a 2-D array of finite, "
-                            "non-negative values with a positive sum.")
-    return a.copy()
-
-def disc_transform(x):
-    """2 J1(x) / x, the Fourier transform of a uniform disc of unit area at
-    x = 2π f R (f cycles per pixel, R the radius in pixels); 1 at x = 0. J1 by the
-    rational and asymptotic approximations of Hart (Numerical Recipes' bessj1), to
-    about 1e-8, smooth in x for gradients."""
-    x = jnp.abs(jnp.asarray(x, float))
-    y = x * x
-    p = 72362614232.0 + y * (-7895059235.0 + y * (242396853.1 + y * (
-        -2972611.439 + y * (15704.48260 + y * (-30.16036606)))))
-    q = 144725228442.0 + y * (2300535178.0 + y * (18583304.74 + y * (
-        99447.43394 + y * (376.9991397 + y))))
-    small = 2.0 * p / q  # 2 J1(x)/x for x < 8 (J1 = x p/q)
-    xb = jnp.maximum(x, 8.0)
-    z = 8.0 / xb
-    y2 = z * z
-    xx = xb - 2.356194491
-    a1 = 1.0 + y2 * (0.183105e-2 + y2 * (-0.3516396496e-4 + y2 * (
-        0.2457520174e-5 + y2 * (-0.240337019e-6))))
-    a2 = 0.04687499995 + y2 * (-0.2002690873e-3 + y2 * (0.8449199096e-5 + y2 * (
-        -0.88228987e-6 + y2 * 0.105787412e-6)))
-    big = 2.0 * jnp.sqrt(0.636619772 / xb) * (jnp.cos(xx) * a1 - z * jnp.sin(xx) * a2) / xb
-    return jnp.where(x < 8.0, small, big)
 
 def _resampling_order(resampling) -> int:
     """``None`` (no resampling modelled) → 0; ``"lanczos<a>"`` (a = 2 … 5) → a."""
@@ -199,10 +168,11 @@ class ImageModel:
     ``pad``: extra data pixels computed around the window so the blur does not wrap.
     ``accuracy``: the PSF engine's target.
 
-    ``source``: "point" (default); "disc", a uniform disc of radius ``source_radius``
-    (data pixels; its transform 2 J1(x)/x multiplies the image's spectrum, like the
-    blurs); or a 2-D array, the source as the data's pixels would see it (any size up to
-    the padded window, its centre pixel shape // 2 at the star's position). ``response``:
+    ``source``: "point" (default); "disc" (:class:`DiscSource`), a uniform disc of radius
+    ``source_radius`` (data pixels; its transform 2 J1(x)/x multiplies the image's
+    spectrum, like the blurs); or a 2-D array (:class:`SourceImage`), the source as the
+    data's pixels would see it (any size up to the padded window, its centre pixel
+    shape // 2 at the star's position). ``response``:
     the detector's response curve, the image becomes ``white`` · Z(I / ``white``) +
     background with the toe and knee of :func:`difstar._sensor.response_curve` (the
     camera fitter's curve) — for images that saturate softly; hard-clipped pixels are
@@ -215,7 +185,8 @@ class ImageModel:
                  halos: Sequence[Halo | str | Mapping] | None = None):
         self.pupil = pupil
         self.resampling = _resampling_order(resampling)
-        self.source = _source_kind(source)
+        #: the source's layer: None (a point), :class:`DiscSource` or :class:`SourceImage`
+        self.source = source_of(source)
         self.response = bool(response)
         self.light = light
         self.zernike = tuple(int(j) for j in zernike)
@@ -257,7 +228,6 @@ class ImageModel:
                 raise FitInputError(f"ImageModel: z{j} = {p.value} (bounds {p.bounds}) is "
                                     "not in nm RMS (over 10 µm).")
         self._plans = {}
-        self._source_ft = {}
         self.per_capture: tuple[str, ...] = ()
 
     def for_captures(self, per_capture: Sequence[str], n: int) -> ImageModel:
@@ -280,8 +250,8 @@ class ImageModel:
 
     def _copy(self, **changes) -> ImageModel:
         """A copy with ``changes`` (attribute → value) set; its PSF plans and source
-        transforms are shared with this model's (they depend on neither the values nor
-        which parameters are free)."""
+        layer are shared with this model's (they depend on neither the values nor which
+        parameters are free)."""
         m = copy.copy(self)
         m.__dict__.update(changes)
         return m
@@ -511,12 +481,9 @@ class ImageModel:
         hp, wp = padded
         fy = np.fft.fftfreq(hp * q)[:, None] * q  # cycles per data pixel
         fx = np.fft.rfftfreq(wp * q)[None, :] * q
-        f2 = fx**2 + fy**2
         kern = 1.0
         for layer in self.layers:
             kern = kern * layer.transfer(v, fx, fy)
-        if isinstance(self.source, str) and self.source == "disc":
-            kern = kern * disc_transform(2 * math.pi * np.sqrt(f2) * v["source_radius"])
         if data_grid and self.has_data_grid_kernel:
             if q != 1:
                 raise ValueError("detector_kernel: the resampling kernel and a source image "
@@ -526,11 +493,21 @@ class ImageModel:
 
     @property
     def layers(self) -> tuple:
-        """The detector's layers that blur the image on any grid (:mod:`._detector`):
-        the jitter, each halo, a native pixel's box for oversampled data. (A co-add's
-        :class:`Resampling` acts on the data's pixels: :meth:`data_grid_kernel`.)"""
+        """The layers after the optics that act on any grid (:mod:`._detector`): the
+        jitter, each halo, a native pixel's box for oversampled data, a disc source.
+        (Those on the data's pixels, a co-add's :class:`Resampling` and a
+        :class:`SourceImage`: :attr:`data_grid_layers`.)"""
         native = (NativePixel(self.oversample),) if self.oversample != 1.0 else ()
-        return (Jitter(), *self.halos, *native)
+        disc = (self.source,) if isinstance(self.source, DiscSource) else ()
+        return (Jitter(), *self.halos, *native, *disc)
+
+    @property
+    def data_grid_layers(self) -> tuple:
+        """The layers that act on the data's pixels themselves, after they sample the
+        image: a co-add's :class:`Resampling`, a :class:`SourceImage`."""
+        resampled = (Resampling(self.resampling),) if self.resampling else ()
+        image = (self.source,) if isinstance(self.source, SourceImage) else ()
+        return (*resampled, *image)
 
     @property
     def units(self) -> dict[str, str]:
@@ -541,7 +518,7 @@ class ImageModel:
     def has_data_grid_kernel(self) -> bool:
         """Whether something acts on the data's pixels themselves after they sample the
         image: the co-add's resampling kernel, or a source image."""
-        return bool(self.resampling) or not isinstance(self.source, str)
+        return bool(self.data_grid_layers)
 
     def data_grid_kernel(self, padded: tuple[int, int]):
         """The transfer function, on the half spectrum of the ``padded`` window of data
@@ -550,11 +527,14 @@ class ImageModel:
         hp, wp = padded
         fy = np.fft.fftfreq(hp)[:, None]
         fx = np.fft.rfftfreq(wp)[None, :]
+        if isinstance(self.source, SourceImage) and (
+                self.source.shape[0] > hp or self.source.shape[1] > wp):
+            sh, sw = self.source.shape
+            raise FitInputError(f"ImageModel: the source image ({sh} × {sw}) is larger "
+                                f"than the padded window {(hp, wp)}; crop it or raise pad.")
         kern = np.ones((hp, wp // 2 + 1))
-        if self.resampling:
-            kern = kern * Resampling(self.resampling).transfer({}, fx, fy)
-        if not isinstance(self.source, str):
-            kern = kern * self._source_spectrum((hp, wp))
+        for layer in self.data_grid_layers:
+            kern = kern * layer.transfer({}, fx, fy)
         return jnp.asarray(kern)
 
     def read_out(self, img, v: Mapping[str, Any], shape, exposure: float = 1.0):
@@ -567,21 +547,6 @@ class ImageModel:
         if self.response:
             img = v["white"] * response_curve(img / v["white"], v["toe"], v["knee"])
         return img + v["background"]
-
-    def _source_spectrum(self, shape):
-        """The half spectrum of the user's source image (unit sum, its centre pixel at
-        the origin) on the padded window ``shape``."""
-        if shape not in self._source_ft:
-            src = self.source
-            sh, sw = src.shape
-            if sh > shape[0] or sw > shape[1]:
-                raise FitInputError(f"ImageModel: the source image ({sh} × {sw}) is larger "
-                                    f"than the padded window {shape}; crop it or raise pad.")
-            big = np.zeros(shape)
-            big[:sh, :sw] = src / src.sum()
-            big = np.roll(big, (-(sh // 2), -(sw // 2)), axis=(0, 1))
-            self._source_ft[shape] = np.fft.rfft2(big)  # NumPy: a constant in any trace
-        return self._source_ft[shape]
 
     def __call__(self, shape, values=None):
         """Concrete model image at ``values`` (default: the current values)."""

@@ -13,6 +13,7 @@ from .._psf import _edges, psf_bytes
 from .._validate import fmt_bytes, memory_budget
 from ._analysis import _scan, _scan_problem, spike_target
 from ._data import FitData, noise_from_residuals, reject_outliers
+from ._detector import SourceImage
 from ._model import ImageModel
 from ._params import _PITCH, FitInputError, _finite, _whole
 
@@ -342,7 +343,7 @@ def _check_fit_inputs(model: ImageModel, datas: Sequence[FitData], stages: Seque
         if combos > MAX_STARTS:
             raise _InputAt(("starts",), f"{combos} combinations of start values, each a fit "
                            f"of the first stage; at most {MAX_STARTS}: give fewer.")
-    if not isinstance(model.source, str):  # a source image: inside every padded window
+    if isinstance(model.source, SourceImage):  # inside every padded window
         sh, sw = model.source.shape
         for si, st in enumerate(stages):
             half = st.get("half") if st.get("hop") is None and st.get("repeat") is None \
