@@ -24,6 +24,7 @@ from difstar.fitting import (
     ImageModel,
     Light,
     Param,
+    Resampling,
     Solve,
     SourceImage,
     chi2_slice,
@@ -910,6 +911,13 @@ def test_source_layers_as_classes():
     np.testing.assert_array_equal(src, kept)
     point = ImageModel(obstructed_circle_pupil(), {}, light=light)
     assert point.source is None and "source_radius" not in point.params
+    # the co-add's kernel as a class or by name: the same model
+    ps = {"pixel_scale": Param(P)}
+    a = ImageModel(obstructed_circle_pupil(), ps, light=light, resampling="lanczos3")
+    b = ImageModel(obstructed_circle_pupil(), ps, light=light, resampling=Resampling(3))
+    assert a.resampling == b.resampling == 3
+    with pytest.raises(FitInputError, match="order 7"):
+        Resampling(7)
 
 
 def test_source_response_and_exposure_inputs_are_checked():

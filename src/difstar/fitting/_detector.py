@@ -153,6 +153,11 @@ class Resampling(DetectorLayer):
     order: int
     on_data_grid: ClassVar[bool] = True
 
+    def __post_init__(self):
+        if isinstance(self.order, bool) or self.order not in (2, 3, 4, 5):
+            raise FitInputError(f"Resampling: order {self.order!r} must be 2, 3, 4 or 5 "
+                                "(Lanczos2 … Lanczos5; SWarp's LANCZOS3 is 3).")
+
     def transfer(self, v, fx, fy):
         return lanczos_transfer(fx, self.order) * lanczos_transfer(fy, self.order)
 

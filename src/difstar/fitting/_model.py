@@ -118,9 +118,12 @@ def parameter_defaults(pupil: PupilBuilder, *, zernike: Sequence[int] = (),
     return out
 
 def _resampling_order(resampling) -> int:
-    """``None`` (no resampling modelled) → 0; ``"lanczos<a>"`` (a = 2 … 5) → a."""
+    """``None`` (no resampling modelled) → 0; ``"lanczos<a>"`` (a = 2 … 5) or
+    :class:`Resampling` (a) → a."""
     if resampling is None:
         return 0
+    if isinstance(resampling, Resampling):
+        return resampling.order
     m = re.fullmatch(r"lanczos([2-5])", str(resampling).lower())
     if m is None:
         raise FitInputError(f"ImageModel: resampling must be null or 'lanczos2' … "
@@ -181,7 +184,7 @@ class ImageModel:
     def __init__(self, pupil: PupilBuilder, params: Mapping[str, Any], *, light: Light,
                  zernike: Sequence[int] = (), oversample: float = 1.0, pad: int = 8,
                  accuracy: float = 1e-2, max_shift: float = 4.0, source: Any = "point",
-                 response: bool = False, resampling: str | None = None,
+                 response: bool = False, resampling: str | Resampling | None = None,
                  halos: Sequence[Halo | str | Mapping] | None = None):
         self.pupil = pupil
         self.resampling = _resampling_order(resampling)
@@ -293,7 +296,7 @@ class ImageModel:
             params[k] = q
         return self._copy(params=params)
 
-    def with_resampling(self, resampling: str | None) -> ImageModel:
+    def with_resampling(self, resampling: str | Resampling | None) -> ImageModel:
         """A copy whose detector models a co-add resampled with ``resampling`` (null or
         'lanczos2' … 'lanczos5', as the constructor takes it); every parameter and plan
         kept (the kernel does not change the PSF's plan)."""
