@@ -220,7 +220,7 @@ def test_synth_dng_roundtrip(tmp_path):
     assert not a["saturated"].any() and b["saturated"].any()
     # the data agree with the truth's prediction within the noise
     model, caps = prepare(man)
-    truth = model.with_values(man.synthetic["truth"])
+    truth = model.fixed_at(man.synthetic["truth"])
     pred = F.Fitter(truth).predict(F.to_unconstrained(truth))
     data = observed_data(truth, caps, man.noise, sigma_from=pred)
     z, w = (np.asarray(v) for v in data["c"])

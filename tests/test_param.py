@@ -93,3 +93,31 @@ def test_input_arrays_are_not_modified():
     p = Param(v, True, (lo, 1.0))
     p.value[0] = 0.9  # the Param holds its own copies
     assert v[0] == 0.1 and lo[0] == 0.0
+
+
+def test_both_fit_models_are_forward_models_with_one_interface():
+    """The RAW fit's FitModel and the image fit's ImageModel are the two kinds of
+    ForwardModel: the free names in the solver's order, the values, the units, and a
+    copy at other values (bounds kept; ``free`` leaves only those free) the same way;
+    ``FitModel.fixed_at`` fixes every parameter (the truth of a synthetic campaign)."""
+    from test_fit import _model
+
+    from difstar._param import ForwardModel
+    from difstar.fitting import ImageModel, Light, obstructed_circle_pupil
+
+    raw = _model()
+    img = ImageModel(obstructed_circle_pupil(), {
+        "rotation": Param(0.0, True, (-5.0, 5.0)), "x0": Param(0.0, True, (-2.0, 2.0))},
+        light=Light.monochromatic(3.6e-6))
+    for m, name, unit in ((raw, "rotation", "rad"), (img, "rotation", "deg")):
+        assert isinstance(m, ForwardModel)
+        assert list(m.free) == [k for k, p in m.params.items() if p.free]
+        assert set(m.values()) == set(m.params) and m.units[name].startswith(unit)
+        keep = [k for k in m.free if k != name]
+        moved = m.with_values({name: 0.1}, free=keep)
+        assert name not in moved.free and list(moved.free) == keep
+        assert float(np.asarray(moved.params[name].value)) == pytest.approx(0.1)
+        assert moved.params[name].bounds == m.params[name].bounds
+        assert list(m.with_values({name: 0.1}).free) == list(m.free)  # free as it was
+    fixed = raw.fixed_at({"rotation": 0.2})
+    assert list(fixed.free) == [] and float(fixed.params["rotation"].value) == 0.2

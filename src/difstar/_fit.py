@@ -54,7 +54,7 @@ from ._batch import device_mesh
 from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, read_out, simulate
 from ._image import DiscSource
 from ._lm import LMStepper, SolveResult, normal_covariance, with_batched_jacobian
-from ._param import Param
+from ._param import ForwardModel, Param
 from ._pupil import Polygon, RegularPolygon
 from ._pupil_curved import CurvedIris
 from ._sensor import Response
@@ -167,7 +167,9 @@ class CaptureSpec:
 
 
 @dataclasses.dataclass(frozen=True)
-class FitModel:
+class FitModel(ForwardModel):
+    """The RAW fit's :class:`ForwardModel`: camera, configurations, captures, params."""
+
     camera: CameraConstants
     configs: tuple[ConfigSpec, ...]
     captures: tuple[CaptureSpec, ...]
@@ -195,24 +197,25 @@ class FitModel:
                 raise ValueError(f"fit model lacks parameter {req!r}")
 
     @property
-    def free(self) -> tuple[str, ...]:
-        """The free parameters' names, in the order of the solver's vector."""
-        return tuple(k for k, p in self.params.items() if p.free)
-
-    @property
     def n_free(self) -> int:
         return sum(self.params[k].size for k in self.free)
 
     def captures_of(self, config: str) -> tuple[CaptureSpec, ...]:
         return tuple(c for c in self.captures if c.config == config)
 
-    def with_starts(self, values: dict[str, np.ndarray]) -> FitModel:
-        """A copy with new start values (bounds unchanged)."""
+    def unit(self, name: str) -> str:
+        return unit_of(name)
+
+    def with_values(self, values, free=None) -> FitModel:
+        """A copy with ``values`` as the starts (bounds kept) and, given ``free``, only
+        those of the free parameters left free."""
         ps = {k: p.with_value(np.asarray(values[k], float)) if k in values else p
               for k, p in self.params.items()}
+        if free is not None:
+            ps = {k: dataclasses.replace(p, free=p.free and k in free) for k, p in ps.items()}
         return dataclasses.replace(self, params=ps)
 
-    def with_values(self, values: dict[str, np.ndarray]) -> FitModel:
+    def fixed_at(self, values) -> FitModel:
         """A copy with every parameter fixed at ``values`` (default: its start)."""
         ps = {k: Param(np.asarray(values.get(k, p.value), float))
               for k, p in self.params.items()}
@@ -591,9 +594,7 @@ def _covariance(model: FitModel, j: np.ndarray, r: np.ndarray, u):
     return cov, out, diag
 
 
-__all__ = [
-    "CameraConstants", "ConfigSpec", "CaptureSpec", "FitModel", "SolveResult",
-    "to_unconstrained", "from_unconstrained", "camera_scene", "predict", "noise_sigma",
-    "make_residual_fn", "make_args", "weights", "Fitter",
-    "pupil_of", "make_sensor_residual_fn", "sensor_index", "sensor_of", "exposure_times",
-]
+__all__ = ["CameraConstants", "ConfigSpec", "CaptureSpec", "FitModel", "SolveResult",
+           "to_unconstrained", "from_unconstrained", "camera_scene", "predict", "noise_sigma",
+           "make_residual_fn", "make_args", "weights", "Fitter", "pupil_of", "sensor_of",
+           "make_sensor_residual_fn", "sensor_index", "exposure_times"]

@@ -332,7 +332,7 @@ def synthesize(man, out_dir: Path, *, overwrite: bool = False) -> list[Path]:
             exposure_times={c.name: c.exposure_time for c in man.captures}, pattern=pattern,
             padding=syn["padding"], values=syn["truth"], accuracy=SYNTH_ACCURACY,
         )
-        model = model.with_values(syn["truth"])
+        model = model.fixed_at(syn["truth"])
         _log("difstar synth: grids " + "; ".join(f"{c.name}: {c.grid.describe()}"
                                                  for c in model.configs))
         pred = Fitter(model).predict(to_unconstrained(model))

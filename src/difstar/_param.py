@@ -21,8 +21,10 @@ reaches its ends): :data:`START_MARGIN` unless the caller says otherwise.
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import math
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import jax
@@ -184,5 +186,39 @@ def _tree_like(s, value):
     return s
 
 
-__all__ = ["Param", "FitInputError", "bound_map", "bound_map_inverse", "step_map",
-           "START_MARGIN"]
+class ForwardModel(abc.ABC):
+    """What every fit model shares, whatever data it predicts: named parameters, each a
+    :class:`Param` (``params``, in the solver's order), that the model turns into a
+    prediction of its data. Its two kinds: :class:`difstar.raw_fit.FitModel` (RAW
+    mosaics through ``difstar.simulate``) and :class:`difstar.fitting.ImageModel` (a
+    star's intensity image). Both give their parameters' values and units and a copy at
+    other values the same way."""
+
+    params: dict[str, Param]
+
+    @property
+    def free(self) -> Sequence[str]:
+        """The free parameters' names, in the order of the solver's vector."""
+        return [k for k, p in self.params.items() if p.free]
+
+    def values(self) -> dict[str, Any]:
+        """Every parameter's value (its start, where it is free)."""
+        return {k: p.value for k, p in self.params.items()}
+
+    @abc.abstractmethod
+    def unit(self, name: str) -> str:
+        """The unit of parameter ``name``."""
+
+    @property
+    def units(self) -> dict[str, str]:
+        """Every parameter's unit."""
+        return {k: self.unit(k) for k in self.params}
+
+    @abc.abstractmethod
+    def with_values(self, values: Mapping[str, Any], free: Sequence[str] | None = None):
+        """A copy with ``values`` (name → value; the others as they are, bounds kept)
+        and, given ``free``, only those of the free parameters left free."""
+
+
+__all__ = ["Param", "FitInputError", "ForwardModel", "bound_map", "bound_map_inverse",
+           "step_map", "START_MARGIN"]

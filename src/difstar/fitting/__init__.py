@@ -50,6 +50,7 @@ a fit chooses when it is given none), ``_procedure`` (:func:`fit`), ``_manifest`
 on the pixel grid, with a neighbour; the noise limit), ``_run`` (:func:`run_fit_image`).
 """
 
+from .._param import ForwardModel as ForwardModel
 from ._analysis import chi2_at as chi2_at
 from ._analysis import chi2_slice as chi2_slice
 from ._analysis import spike_angles as spike_angles
@@ -96,7 +97,8 @@ from ._studies import noise_limit as noise_limit
 from ._studies import shifted_image as shifted_image
 
 __all__ = [
-    "DetectorLayer", "DiscSource", "FitData", "FitInputError", "FitResult", "Halo", "Hop",
+    "DetectorLayer", "DiscSource", "FitData", "FitInputError", "FitResult", "ForwardModel",
+    "Halo", "Hop",
     "ImageModel", "Jitter", "Light", "NativePixel", "Noise", "Param", "PupilBuilder", "Repeat",
     "Resampling",    "Restart", "Solve", "SourceImage", "auto_stages", "chi2_at", "chi2_slice",
     "contaminated_image", "data_intensity",

@@ -13,6 +13,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._param import ForwardModel
 from .._psf import plan_psf, psf
 from .._pupil import distorted
 from .._sensor import response_curve
@@ -147,8 +148,9 @@ PLAN_MARGIN = 1.5
 #: second plan, program and solve (the Spitzer fit's last stage: one more compile).
 PLAN_HEADROOM = 0.1
 
-class ImageModel:
-    """A star image: pupil builder, wavefront (Zernike Noll indices), light, detector.
+class ImageModel(ForwardModel):
+    """A star image (the image fit's :class:`ForwardModel`): pupil builder, wavefront
+    (Zernike Noll indices), light, detector.
 
     ``params``: name → :class:`Param` (or a number, or a dict with value/free/bounds/
     scale) for the common parameters (``rotation`` deg, ``x0``, ``y0`` data pixels,
@@ -276,13 +278,6 @@ class ImageModel:
     @property
     def names(self) -> list[str]:
         return list(self.params)
-
-    @property
-    def free(self) -> list[str]:
-        return [k for k, p in self.params.items() if p.free]
-
-    def values(self) -> dict[str, float]:
-        return {k: p.value for k, p in self.params.items()}
 
     def with_values(self, values: Mapping[str, float], free: Sequence[str] | None = None):
         """A copy with new values (and, if given, only ``free`` left free)."""
@@ -512,10 +507,9 @@ class ImageModel:
         image = (self.source,) if isinstance(self.source, SourceImage) else ()
         return (*resampled, *image)
 
-    @property
-    def units(self) -> dict[str, str]:
-        """Every parameter's unit (:func:`parameter_unit`)."""
-        return {k: parameter_unit(k, self) for k in self.params}
+    def unit(self, name: str) -> str:
+        """The unit of parameter ``name`` (:func:`parameter_unit`)."""
+        return parameter_unit(name, self)
 
     @property
     def has_data_grid_kernel(self) -> bool:
