@@ -1261,6 +1261,7 @@ def test_a_list_of_named_halos_against_scipy():
     (["halo", "halo"], "given twice"),
     (["x0"], "are taken"),
     (["a", "a_width"], "are taken"),
+    (["source_radius"], "are taken"),  # a disc source's, even where the source is a point
     (["z4"], "Zernike"),
     (["2b"], "letters, digits"),
     ([{"name": "h", "width": 0.0}], "width 0.0"),

@@ -37,6 +37,7 @@ from ._validate import (
     check_camera_scene,
     check_crop,
     fmt_bytes,
+    fmt_count,
     memory_budget,
 )
 
@@ -171,13 +172,9 @@ def choose_grid(
             raise InputError(f"choose_grid: oversample = {oversample}; give an integer >= 1.")
 
     def refuse(side: int, q: int, fixes: str):
-        def count(n: int) -> str:  # any size, readable
-            d = str(int(n))
-            return d if len(d) <= 12 else f"{d[0]}.{d[1:3]}e{len(d) - 1}"
-
         raise SamplingError(
-            f"difstar.choose_grid: the grid ({count(side // q)} px a side, oversample "
-            f"{q}: {count(side)} samples a side) needs at least "
+            f"difstar.choose_grid: the grid ({fmt_count(side // q, 12)} px a side, "
+            f"oversample {q}: {fmt_count(side, 12)} samples a side) needs at least "
             f"{fmt_bytes(_grid_bytes(side))} of memory, "
             f"more than the {fmt_bytes(budget)} this machine has (DIFSTAR_MEMORY_LIMIT "
             f"overrides). {fixes}"

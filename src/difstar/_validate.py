@@ -500,12 +500,18 @@ def check_pupil_cost(pupil, field: str = "pupil") -> int:
     return largest
 
 
+def fmt_count(n, digits: int = 15) -> str:
+    """A whole number ``n`` for a reader: as it is up to ``digits`` digits, else
+    "1.60e601"; any size, an int beyond a float's range too (a cost estimate for absurd
+    inputs)."""
+    d = str(int(n))  # exact for ints of any size
+    return d if len(d) <= digits else f"{d[0]}.{d[1:3]}e{len(d) - 1}"
+
+
 def fmt_bytes(b) -> str:
-    """``b`` bytes for a reader: "3.2 GB"; any size, an int beyond a float's range too
-    (a cost estimate for absurd inputs)."""
+    """``b`` bytes for a reader: "3.2 GB"; any size (:func:`fmt_count` beyond 1e15)."""
     if b >= 1e15:
-        d = str(int(b))  # exact for ints of any size
-        return f"{d[0]}.{d[1:3]}e{len(d) - 1} bytes"
+        return f"{fmt_count(b, digits=0)} bytes"
     for unit, s in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
         if b >= s:
             return f"{b / s:.3g} {unit}"
@@ -520,6 +526,6 @@ __all__ = [
     "check_camera_scene", "check_crop", "check_edge_count",
     "check_memory", "check_number", "check_obstruction", "check_polygon_vertices",
     "check_psf_inputs", "check_pupil", "check_pupil_cost", "check_shape",
-    "check_wavelength_count", "fmt_bytes",
+    "check_wavelength_count", "fmt_bytes", "fmt_count",
     "memory_budget", "memory_limit_from_env", "parse_memory_limit", "refuse_nonfinite_traced",
 ]

@@ -331,7 +331,7 @@ def _halos(det: Mapping, src: str):
 
 
 def _params_of(man: Mapping, kind: str, builder: PupilBuilder, auto: Mapping,
-               src: str) -> dict:
+               src: str, halos) -> dict:
     """The manifest's ``params``, each checked and turned into a :class:`Param` (the
     ``"auto"`` and ``"header"`` values and their relative bounds filled in), with errors
     naming the parameter's field."""
@@ -342,11 +342,9 @@ def _params_of(man: Mapping, kind: str, builder: PupilBuilder, auto: Mapping,
                                        source=("disc" if man.get("source") == "disc"
                                                else None),
                                        response=bool(det.get("response", False)),
-                                       halos=_halos(det, src)))
-    except FitInputError as e:
-        msg = str(e)
-        raise FitInputError(msg if msg.startswith(src) else f"{src}: field detector/{msg}"
-                            ) from None
+                                       halos=halos))
+    except FitInputError as e:  # a halo named as another parameter
+        raise FitInputError(f"{src}: field detector/{e}") from None
     out = {}
     for k, spec in man["params"].items():
         at = f"{src}: field params/{k}"
@@ -475,7 +473,8 @@ def load_manifest(path, *, transform=None):
     x0, y0 = _brightest_offset(fd, bg)
     auto = {"pixel_scale": fd.pixel_scale, "background": bg,
             "flux": float(np.sum(fd.image[fd.mask] - bg)) / fd.exposure, "x0": x0, "y0": y0}
-    params = _params_of(man, kind, builder, auto, src)
+    halos = _halos(det, src)
+    params = _params_of(man, kind, builder, auto, src, halos)
     try:
         model = ImageModel(builder, params, light=light, zernike=man.get("zernike", ()),
                            oversample=float(det.get("oversample", 1.0)),
@@ -484,7 +483,7 @@ def load_manifest(path, *, transform=None):
                            source=_load_source(man.get("source", "point"), path.parent,
                                                source=src, inputs=inputs),
                            response=bool(det.get("response", False)),
-                           resampling=det.get("resampling"), halos=_halos(det, src))
+                           resampling=det.get("resampling"), halos=halos)
     except FitInputError as e:  # the parameter it names, where it names one
         msg = str(e).removeprefix("ImageModel: ")
         m = re.match(r"(\w+) = ", msg)

@@ -97,20 +97,21 @@ def parameter_defaults(pupil: PupilBuilder, *, zernike: Sequence[int] = (),
     the detector layers' (the jitter, each halo's), the pupil builder's, ``z<j>`` for
     each Zernike term, a disc source's radius and the response curve's. The one list
     :class:`ImageModel` and a manifest's ``params`` are checked against."""
-    others = dict(COMMON) | dict(pupil.defaults) | {f"z{int(j)}": 0.0 for j in zernike}
+    zern = {f"z{int(j)}": 0.0 for j in zernike}
+    # a halo may take no name another part has, whether this model has that part or not
+    taken = (set(COMMON) | set(pupil.defaults) | set(zern) | set(Jitter().parameters)
+             | set(DiscSource().parameters) | set(RESPONSE))
     # the detector's after the pixel scale, before the distortion: the order of the
     # solver's vector (which a long, flat valley's end can depend on) as it always was
-    out = {k: v for k, v in COMMON.items() if k not in DISTORTION}
-    for layer in (Jitter(), *halos):
-        mine = layer.parameters
-        clash = sorted(set(mine) & (set(out) | set(others) | set(RESPONSE)))
+    out = {k: v for k, v in COMMON.items() if k not in DISTORTION} | Jitter().parameters
+    for halo in halos:
+        clash = sorted(set(halo.parameters) & (taken | set(out)))
         if clash:
-            who = getattr(layer, "name", "jitter")
-            raise FitInputError(f"halos: the halo {who!r} has the parameters {sorted(mine)}: "
-                                f"the names {clash} are taken with other parameters of the model; "
-                                "name the halo otherwise.")
-        out |= mine
-    out |= {k: COMMON[k] for k in DISTORTION} | others
+            raise FitInputError(f"halos: the halo {halo.name!r} has the parameters "
+                                f"{sorted(halo.parameters)}: the names {clash} are taken "
+                                "with other parameters of the model; name the halo otherwise.")
+        out |= halo.parameters
+    out |= {k: COMMON[k] for k in DISTORTION} | dict(pupil.defaults) | zern
     layer = source_of(source)
     if layer is not None:
         out |= layer.parameters
