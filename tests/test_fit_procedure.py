@@ -17,7 +17,7 @@ from difstar._fit_procedure import (
     restart_response_curves,
     run_stages,
 )
-from difstar.fitting import Repeat, Restart, Solve
+from difstar.fitting import Hop, Repeat, Restart, Solve
 from difstar.io._scene import SceneError
 
 FREE = {"circumradius": (0.8e-3, 1.6e-3), "rotation": (0.0, 0.45),
@@ -58,7 +58,15 @@ def test_the_default_procedure_is_the_one_the_docs_write(small):
     ([{"fix": ["knee"], "free": ["knee"]}], "solver/stages/0: frees no free parameter"),
     ([{"sigma": "model"}], "solver/stages/0/sigma"),
     ([{"free": "all", "max_steps": 0}], "solver/stages/0/max_steps"),
-    ([Repeat(until={"rotation": 1e-3})], "solver/stages/0: a RAW fit's stage is a solve"),
+    ([Repeat(until={"rotation": 1e-3})], "solver/stages/0/repeat: .*stages=2"),
+    ([{"free": "all"}, {"repeat": {"until": {"radius": 1e-3}, "stages": 1}}],
+     "solver/stages/1/repeat: .*until.radius"),
+    ([{"free": "all"}, {"hop": {"name": "rotation", "offsets": [0.1], "stages": 2}}],
+     "solver/stages/1/hop: .*1 <= stages <= 1"),
+    ([{"free": "all"}, {"hop": {"flip": ["radius"], "stages": 1}}],
+     "solver/stages/1/hop: .*'radius'"),
+    ([{"free": "all"}, {"hop": {"set": {"rotation": "x"}, "stages": 1}}],
+     "solver/stages/1/hop/set: rotation must be a finite number"),
 ])
 def test_a_procedure_that_cannot_be_right_is_refused_naming_the_field(small, stages, field):
     model, _, _ = small
@@ -98,17 +106,58 @@ def test_a_written_procedure_moves_only_what_each_solve_frees(small):
     assert jnp.all(jnp.isfinite(solved.u))
 
 
+def test_a_raw_hop_keeps_the_try_that_ends_lowest_and_a_repeat_records_its_rounds(small):
+    """The one stage loop runs a RAW fit's hops and repeats as an image fit's. With the
+    rotation held 0.1 rad off its true value by a solve of φ0 alone, a hop that moves it
+    by −0.1 and +0.1 and re-solves φ0 keeps the −0.1 try (back at the truth, where the
+    loss is lowest) and records every try; a repeat of two alternating solves records
+    each round's values and whether they settled."""
+    model, fitter, caps = small
+    truth = float(model.params["rotation"].value)
+    start = {k: np.asarray(model.params[k].value) for k in model.free} | {
+        "rotation": truth + 0.1}
+    u0 = F.to_unconstrained(model, start)
+    noise = {"gain_e_per_dn": 1.5, "read_noise_dn": 2.5}
+    procedure = (Solve(free=["phi0"], max_steps=10),
+                 Hop(name="rotation", offsets=(0.1, -0.1), stages=1))
+    solved, records, _ = run_stages(fitter, model, caps, noise, u0, {"max_steps": 10},
+                                    procedure=procedure, verbose=False)
+    first, hop = records[0], records[-1]
+    tried = {t["change"]: t["loss"] for t in hop["tried"]}
+    assert list(tried) == ["none", "rotation +0.1", "rotation -0.1"]
+    assert tried["rotation -0.1"] < tried["none"] < tried["rotation +0.1"]
+    assert tried["none"] == pytest.approx(first["loss_end"], rel=1e-12)
+    rotation = float(F.from_unconstrained(model, solved.u)["rotation"])
+    assert rotation == pytest.approx(truth, abs=1e-9)
+    assert solved.loss == pytest.approx(tried["rotation -0.1"], rel=1e-12)
+    # a repeat of the last two solves, round after round
+    procedure = (Solve(free=["phi0"], max_steps=5), Solve(free=["rotation"], max_steps=5),
+                 Repeat(until={"rotation": 1e-6, "phi0": 1e-9}, stages=2, max_rounds=2))
+    solved, records, _ = run_stages(fitter, model, caps, noise, u0, {"max_steps": 5},
+                                    procedure=procedure, verbose=False)
+    rounds = records[-1]["rounds"]
+    assert 1 <= len(rounds) <= 2 and set(rounds[0]["values"]) == {"rotation", "phi0"}
+    assert len(rounds[0]["values"]["phi0"]) == 3  # one per channel
+    assert rounds[-1]["values"]["rotation"] == pytest.approx(
+        float(F.from_unconstrained(model, solved.u)["rotation"]), rel=1e-12)
+    assert abs(rounds[-1]["values"]["rotation"] - truth) < 1e-3
+    assert len(records) == 2 + 2 * len(rounds) + 1  # every re-solve is recorded
+
+
 @pytest.mark.slow
 def test_a_manifests_written_procedure_runs_and_every_free_parameter_has_its_error(tmp_path):
     """The synthetic campaign on 64² regions (a manifest that extends it) with its own
-    solver.stages, the last of which holds the response curves: the fit runs those stages
-    and no others, and the standard errors are every free parameter's (the held ones' too,
-    from a Jacobian of all of them at the answer)."""
+    solver.stages, the second of which holds the response curves, then a hop of the
+    rotation that re-runs it: the fit runs those stages and no others, the result
+    records the hop and validates against its schema, and the standard errors are every
+    free parameter's (the held ones' too, from a Jacobian of all of them at the
+    answer)."""
     import json
     from pathlib import Path
 
     from difstar._fit_run import fit_manifest
     from difstar.io._manifest import load_manifest
+    from difstar.io._scene import validate
 
     root = Path(__file__).resolve().parents[1]
     small = tmp_path / "small.json"
@@ -117,12 +166,18 @@ def test_a_manifests_written_procedure_runs_and_every_free_parameter_has_its_err
         "roi_size": [64, 64],
         "solver": {"stages": [{"free": "all", "max_steps": 3},
                               {"fix": ["toe", "knee"], "sigma": "prediction",
-                               "max_steps": 2}]}}))
+                               "max_steps": 2},
+                              {"hop": {"name": "rotation", "offsets": [0.01], "stages": 1}}]}}))
     res, model, *_ = fit_manifest(load_manifest(small), verbose=False)
-    labels = [s["label"] for s in res["convergence"]["stages"]]
+    validate(res, "fit_result", source="fit_result.json")
+    records = res["convergence"]["stages"]
+    labels = [s["label"] for s in records if "label" in s]
     assert labels == ["all free parameters, σ from the data",
-                      "all free parameters except toe, knee, σ from the prediction"]
-    assert res["convergence"]["stages"][1]["held"] == ["toe", "knee"]
+                      "all free parameters except toe, knee, σ from the prediction",
+                      "all free parameters except toe, knee, σ from the prediction "
+                      "(again, σ as it was)"]
+    assert records[1]["held"] == ["toe", "knee"]
+    assert [t["change"] for t in records[-1]["tried"]] == ["none", "rotation +0.01"]
     for name in model.free:
         se = np.asarray(res["parameters"][name]["stderr"])
         assert np.all(np.isfinite(se)) and np.all(se > 0), (name, se)

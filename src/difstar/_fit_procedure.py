@@ -16,18 +16,24 @@ from the model's prediction at the values reached (the Poisson–Gaussian noise 
 predicted mosaic), otherwise from the observed values; ``max_steps`` (default: the
 solver's). A restart moves each channel's ``parameter`` (a response-curve parameter:
 ``phi0``, ``toe`` or ``knee``) by each factor and keeps what ends lower
-(:func:`restart_response_curves`)."""
+(:func:`restart_response_curves`). A hop or a repeat (as in an image fit:
+:func:`difstar.fitting.fit`) re-runs the solves before it with σ as it was; one loop runs
+every fit's stages (:func:`difstar.fitting._loop.run_procedure`; this module's
+:class:`RawRunner` is the RAW fit's part of it)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from difstar._fit import (
+    base_name,
     free_parts,
     from_unconstrained,
     make_args,
@@ -36,7 +42,10 @@ from difstar._fit import (
     weights,
 )
 from difstar._progress import moved_most
-from difstar.fitting._stage_types import Restart, Solve, parse_stage
+from difstar.fitting._loop import StageRunner, run_procedure
+from difstar.fitting._params import FitInputError
+from difstar.fitting._stage_types import Hop, Repeat, Restart, Solve, parse_stage
+from difstar.fitting._stages import _check_hop, _check_repeat, _InputAt
 from difstar.io._scene import SceneError
 
 #: Restarts of each channel's response-curve parameters, as factors of the value reached:
@@ -166,9 +175,13 @@ def procedure_of(model, solver: dict, src: str = "<manifest>") -> tuple:
                                  "solve before it; restart a parameter that solve frees.")
             out.append(st)
             continue
+        if isinstance(st, (Hop, Repeat)):
+            _check_hop_or_repeat(model, i, st, sum(isinstance(s, Solve) for s in out), where)
+            out.append(st)
+            continue
         if not isinstance(st, Solve):
-            raise SceneError(f"{where}: a RAW fit's stage is a solve ({list(solve_fields)}) "
-                             f"or a restart; got {type(st).__name__}.")
+            raise SceneError(f"{where}: a RAW fit's stage is a solve ({list(solve_fields)}), "
+                             f"a restart, a hop or a repeat; got {type(st).__name__}.")
         extra = sorted(k for k in st.as_dict() if k not in solve_fields)
         if extra:
             raise SceneError(f"{where}: {extra} apply to image fits; a RAW fit's solve takes "
@@ -188,6 +201,24 @@ def procedure_of(model, solver: dict, src: str = "<manifest>") -> tuple:
     return tuple(out)
 
 
+def _check_hop_or_repeat(model, si: int, st, n_solving: int, where: str) -> None:
+    """The image fit's checks of a hop or a repeat (names, offsets, tolerances, how
+    many solves it re-runs), as a RAW manifest's field: a family's base name (e.g.
+    ``defocus``) stands for its members in ``until``."""
+    try:
+        if isinstance(st, Hop):
+            _check_hop(model, si, st.as_dict()["hop"], n_solving)
+        else:
+            families = sorted({base_name(k) for k in model.params if "/" in k})
+            _check_repeat(model, si, st.as_dict()["repeat"], n_solving, families)
+    except _InputAt as e:  # its place in the stage: hop, hop/set
+        raise SceneError(f"{where}/{'/'.join(map(str, e.path[2:]))}: {e.detail}") from None
+    except FitInputError as e:
+        kind = "hop" if isinstance(st, Hop) else "repeat"
+        raise SceneError(f"{where}/{kind}: {str(e).removeprefix(f'fit: stage {si}: ')}"
+                         ) from None
+
+
 def stage_label(st: Solve) -> str:
     what = "all free parameters" if st.free == "all" else ", ".join(st.free)
     if st.fix:
@@ -199,39 +230,100 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *,
                procedure: Sequence | None = None, verbose: bool = True):
     """The stages of ``procedure`` (default: ``solver["stages"]``, else
     :func:`default_procedure`; checked by :func:`procedure_of`) in turn, each from where
-    the last ended. Returns the final solve (:class:`difstar._lm.SolveResult`: its ``u``,
-    and its linearisation for the covariance), the per-stage records and the last
-    solve's ``args``."""
+    the last ended, by the one stage loop of every fit
+    (:func:`difstar.fitting._loop.run_procedure`: hops and repeats as in an image fit).
+    Returns the final solve (:class:`difstar._lm.SolveResult`: its ``u``, and its
+    linearisation for the covariance), the per-stage records and the last solve's
+    ``args``."""
     procedure = procedure_of(model, solver if procedure is None
                              else {**solver, "stages": list(procedure)}, "run_stages")
-    records = []
-    u, solved, args = u0, None, None
-    for st in procedure:
+    runner = RawRunner(fitter, model, caps, noise, solver, verbose=verbose)
+    state = run_procedure(runner, procedure, RawState(u0))
+    return state.solved, runner.log, state.args
+
+
+@dataclasses.dataclass(frozen=True)
+class RawState:
+    """Where a RAW fit stands between stages: the solver's vector ``u``, the last solve
+    (None before the first), the data with the σ that solve used ({config: (ζ,
+    weight)}) and its ``args``."""
+
+    u: Any
+    solved: Any = None
+    data: dict | None = None
+    args: dict | None = None
+
+
+class RawRunner(StageRunner):
+    """The RAW camera fit's stages for the one stage loop: a :class:`Solve` (``free``,
+    ``fix``, ``sigma``, ``max_steps``) and a :class:`Restart` of the response curves;
+    its loss is the solver's, ½ Σ ((ζ_pred − ζ_obs)/σ)²."""
+
+    loss_name = "loss"
+
+    def __init__(self, fitter, model, caps, noise, solver: dict, *, verbose: bool = True):
+        super().__init__(verbose=verbose)
+        self.fitter, self.model, self.caps, self.noise = fitter, model, caps, noise
+        self.solver = solver
+
+    def value(self, state: RawState, name: str):
+        x = np.asarray(from_unconstrained(self.model, state.u)[name])
+        return float(x) if x.ndim == 0 else x
+
+    def moved(self, state: RawState, change) -> RawState:
+        vals = {k: np.asarray(v) for k, v in from_unconstrained(self.model, state.u).items()}
+        for q, x in change.items():
+            p = self.model.params[q]
+            margin = 1e-3 * (np.asarray(p.hi) - np.asarray(p.lo))  # the transform's ends
+            vals[q] = np.clip(np.broadcast_to(np.asarray(x, float), p.shape),
+                              p.lo + margin, p.hi - margin)
+        return dataclasses.replace(state, u=to_unconstrained(self.model, vals))
+
+    def put(self, state: RawState, values, where: str) -> dict:
+        return dict(values)  # checked with the procedure; kept inside bounds by moved()
+
+    def expand(self, names) -> list[str]:
+        return [k for q in names for k in self.model.params if k == q or base_name(k) == q]
+
+    def loss(self, state: RawState, ref: RawState) -> float:
+        if state.data is ref.data and state.solved is not None \
+                and np.array_equal(np.asarray(state.solved.u), np.asarray(state.u)):
+            return float(state.solved.loss)  # the solve's own, on the same σ
+        return self.fitter.loss(state.u, make_args(self.model, ref.data, state.u))
+
+    def solve(self, si: int, st, state: RawState, *, again: bool = False) -> RawState:
+        model, fitter, solver, verbose = self.model, self.fitter, self.solver, self.verbose
+        records = self.log
         if isinstance(st, Restart):
             t0 = time.perf_counter()
             solved, tries = restart_response_curves(
-                fitter, model, solved, args, solver, parameter=st.parameter,
+                fitter, model, state.solved, state.args, solver, parameter=st.parameter,
                 factors=st.factors, verbose=verbose)
-            u = solved.u
             if tries:
                 kept = [t for t in tries if t["kept"]]
                 records.append({"label": "response-curve restarts", "tries": tries,
                                 "steps": sum(t["steps"] for t in tries),
                                 "result": f"{len(kept)} of {len(tries)} kept",
                                 "seconds": time.perf_counter() - t0, "compile_seconds": 0.0})
-            continue
-        label = stage_label(st)
+            return dataclasses.replace(state, u=solved.u, solved=solved)
+        u = state.u
+        label = stage_label(st) + (" (again, σ as it was)" if again else "")
         moving = freed(model, st)
         hold = tuple(k for k in model.free if k not in moving)
-        sigma_from = fitter.predict(u) if st.sigma == "prediction" else None
-        args = make_args(model, observed_data(model, caps, noise, sigma_from), u, hold=hold)
+        if again and state.data is not None:
+            data = state.data
+        else:
+            sigma_from = fitter.predict(u) if st.sigma == "prediction" else None
+            data = observed_data(model, self.caps, self.noise, sigma_from)
+        args = make_args(model, data, u, hold=hold)
+        n_solves = sum(1 for r in records if "loss_end" in r)
         if verbose:
-            _log(f"difstar fit: stage {len(records) + 1}: {label}")
+            _log(f"difstar fit: stage {si + 1}: {label}")
             _log(f"{'iter':>6} {'loss':>14} {'step size':>11}  moved most")
         last = [free_parts(model, u)]
 
         def progress(k, loss, size, done, u_k):
-            if k == 1 and not records and "first_step" not in FIRST_STEP:
+            if k == 1 and not n_solves and "first_step" not in FIRST_STEP:
                 FIRST_STEP["first_step"] = seconds_since_process_start()
                 if verbose and FIRST_STEP["first_step"] is not None:
                     _log(f"difstar fit: first step done {FIRST_STEP['first_step']:.1f} s "
@@ -246,16 +338,15 @@ def run_stages(fitter, model, caps, noise, u0, solver: dict, *,
         max_steps = int(solver.get("max_steps", 100) if st.max_steps is None else st.max_steps)
         res = fitter.solve(u, args, max_steps=max_steps, ftol=float(solver.get("ftol", 1e-6)),
                            progress=progress)
-        u, solved = res.u, res
         records.append({
             "label": label, "held": list(hold), "steps": res.steps, "accepted": res.accepted,
             "loss_start": res.loss_start, "loss_end": res.loss, "result": res.result,
             "seconds": res.seconds, "compile_seconds": res.compile_seconds,
         })
         if verbose:
-            _log(f"difstar fit: stage {len(records)} {res.result} after {res.steps} steps, "
+            _log(f"difstar fit: stage {si + 1} {res.result} after {res.steps} steps, "
                  f"{res.seconds:.1f} s (+ {res.compile_seconds:.1f} s compile)")
-    return solved, records, args
+        return RawState(res.u, res, data, args)
 
 
 def restart_response_curves(fitter, model, solved, args, solver: dict, *,

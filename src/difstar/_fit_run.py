@@ -295,8 +295,8 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
                         "stages": stages, **diag},
         "timing_s": {"total": time.perf_counter() - t_all, "covariance": t_cov,
                      "first_step_since_start": FIRST_STEP.get("first_step"),
-                     "solve": sum(s["seconds"] for s in stages),
-                     "compile": sum(s["compile_seconds"] for s in stages)},
+                     "solve": sum(s.get("seconds", 0.0) for s in stages),
+                     "compile": sum(s.get("compile_seconds", 0.0) for s in stages)},
         "jax": {"version": jax.__version__, "backend": jax.default_backend(),
                 "x64": bool(jax.config.jax_enable_x64)},
     }

@@ -1,8 +1,11 @@
-""":func:`fit`: the stages of a fit run in turn (windows, free parameters, scans, hops,
-repeats, reweighting), every stage checked before any solves."""
+""":func:`fit`: an image fit's stages run in turn (windows, free parameters, scans, hops,
+repeats, reweighting), every stage checked before any solves; its solving stage is
+:class:`_ImageRunner`'s, the loop (hops, repeats) :func:`._loop.run_procedure`, which
+the RAW fit runs too."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Mapping, Sequence
 
@@ -11,6 +14,7 @@ import numpy as np
 from ._analysis import chi2_at, scan_grid, scan_rivals, spike_target
 from ._auto import auto_stages, stages_text
 from ._data import noise_from_residuals, reject_outliers
+from ._loop import StageRunner, run_procedure
 from ._model import ImageModel
 from ._params import FitInputError
 from ._solve import (
@@ -117,16 +121,88 @@ def fit(model: ImageModel, data, *, stages: Sequence[Solve | Hop | Repeat | Mapp
     if not model.free:
         raise FitInputError("fit: no free parameter (set free=true on at least one).")
     stages = stage_dicts(stages or [Solve()])  # checked in this form, then parsed
-    values = model.values()
-    log = []
-    last_stage = {}
-    spike_errors = {}
-    notes = []  # the procedure's own warnings (e.g. a repeat that did not settle)
-    status, ok, steps = "converged", True, 0
+    # every stage's mistakes (keys, names, windows, limits, scans, hops, repeats) and the
+    # starts' are found before any fitting; a repeat's (stages, until, max_rounds) kept
+    _check_fit_inputs(model, datas, stages, starts=starts, max_steps=max_steps, rtol=rtol)
+    stages = [parse_stage(st) for st in stages]
+    runner = _ImageRunner(model, n_cap, starts=starts, max_steps=max_steps, rtol=rtol,
+                          atol=atol, verbose=verbose)
+    state = run_procedure(runner, stages, _State(model.values(), tuple(datas)))
+    values, datas = state.values, list(state.datas)
+    status, ok, steps = state.status, state.ok, state.steps
+    log, notes = runner.log, runner.notes
+    spike_errors, last_stage = state.spike_errors, runner.last_stage
 
-    def run_stage(si, st, values, datas):
-        """One stage from ``values``: returns (values, status, ok, steps, datas)."""
-        datas = list(datas)
+    final = model.with_values(values)
+    errors, cov, chi2, dof, mimgs, msgs = _errors(final, datas, values)
+    for k in errors:
+        if last_stage.get(k) in spike_errors:
+            errors[k] = spike_errors[last_stage[k]][k]
+    resids = [np.where(d.mask, d.image - mi, 0.0) for d, mi in zip(datas, mimgs)]
+
+    def one(xs):
+        return xs[0] if n_cap == 1 else xs
+
+    return FitResult(values=values, errors=errors, free=final.free, covariance=cov, chi2=chi2,
+                     dof=dof, status=status, converged=ok, steps=steps,
+                     model_image=one(mimgs), residual=one(resids),
+                     data=one([d.image for d in datas]), mask=one([d.mask for d in datas]),
+                     warnings=notes + msgs, wall_time=time.perf_counter() - t0, stages=log)
+
+
+@dataclasses.dataclass(frozen=True)
+class _State:
+    """Where an image fit stands between stages: the values reached, the captures (σ
+    and masks as the stages before left them), the last solve's outcome, and the
+    standard errors of the spike stages so far (by stage)."""
+
+    values: dict
+    datas: tuple
+    status: str = "converged"
+    ok: bool = True
+    steps: int = 0
+    spike_errors: dict = dataclasses.field(default_factory=dict)
+
+
+class _ImageRunner(StageRunner):
+    """An image fit's solving stage (:class:`Solve`: window, spikes, noise estimate,
+    rejection, scan, multi-start) for :func:`run_procedure`."""
+
+    loss_name = "chi2"
+
+    def __init__(self, model: ImageModel, n_cap: int, *, starts, max_steps, rtol, atol,
+                 verbose):
+        super().__init__(verbose=verbose)
+        self.model, self.n_cap = model, n_cap
+        self.starts, self.max_steps, self.rtol, self.atol = starts, max_steps, rtol, atol
+        #: the stage each parameter was last fitted in
+        self.last_stage: dict[str, int] = {}
+
+    def loss(self, state: _State, ref: _State) -> float:
+        return chi2_at(self.model, list(ref.datas), state.values)
+
+    def value(self, state: _State, name: str) -> float:
+        return state.values[name]
+
+    def moved(self, state: _State, change) -> _State:
+        v = dict(state.values)
+        for q, x in change.items():
+            p = self.model.params[q]
+            x = float(x)
+            v[q] = x if p.bounds is None else min(max(x, p.bounds[0]), p.bounds[1])
+        return dataclasses.replace(state, values=v)
+
+    def put(self, state: _State, values, where: str) -> dict:
+        return _put(self.model, values, where)
+
+    def expand(self, names) -> list[str]:
+        return self.model.expand(names, self.n_cap)
+
+    def solve(self, si: int, st: Solve, state: _State, *, again: bool = False) -> _State:
+        model, n_cap, log, verbose = self.model, self.n_cap, self.log, self.verbose
+        if again:
+            st = st.without_estimates()
+        values, datas = state.values, list(state.datas)
         names = (model.free if st.free == "all" else model.expand(st.free, n_cap))
         fix = set(model.expand(st.fix, n_cap))
         names = [k for k in names if k not in fix]
@@ -185,41 +261,19 @@ def fit(model: ImageModel, data, *, stages: Sequence[Solve | Hop | Repeat | Mapp
             targets = [_PixelTarget(d) for d in ds]
         kind = targets[0].kind
         if st.scan is not None:
-            name = st.scan["name"]
-            grid, cost = scan_grid(model, ds, targets, values, **dict(st.scan))
-            entry = {"stage": si, "scan": dict(st.scan), "best": values[name]}
-            if grid.size:
-                values = {**values, name: float(grid[int(np.argmin(cost))])}
-                # Δχ² of one standard error, scaled by χ²/dof where the model's
-                # mismatch makes that exceed 1
-                n_used = sum(t.n for t in targets if hasattr(t, "n"))
-                within = max(1.0, float(np.min(cost)) / max(n_used - len(model.free), 1))
-                rivals = scan_rivals(grid, cost, within=within)
-                entry |= {"best": values[name], "rivals": rivals}
-                if rivals:
-                    notes.append(
-                        f"stage {si}: the scan of {name} found other minima that the data "
-                        f"hardly tell from the lowest ({values[name]:g}): " + ", ".join(
-                            f"{x:g} (Δχ² {d:.3g})" for x, d in rivals[:4])
-                        + f", each within Δχ² {within:.3g} (one standard error, scaled by "
-                        "χ²/dof). The answer may belong to another of them: bound "
-                        f"{name} nearer the value you expect, or compare the fits from "
-                        "each (chi2_slice shows the curve).")
-            log.append(entry)
-            if verbose:
-                print(f"stage {si}: scan of {name}: best {values[name]:.4g}", flush=True)
+            values = self._scan(si, st.scan, ds, targets, values)
         tries = [{}]
-        if si == 0 and starts:
-            tries = [{}]
-            for k, vs in starts.items():
+        if si == 0 and self.starts:
+            for k, vs in self.starts.items():
                 tries = [dict(t, **{k: float(x)}) for t in tries for x in vs]
         best = None
         for tr in tries:
             m = model.with_values({**values, **tr}, free=names)
             ts = time.perf_counter()
             vals, status, ok, n, m, chi2, lin = _one_fit(
-                m, ds, targets, max_steps=int(max_steps if st.max_steps is None else st.max_steps),
-                rtol=float(rtol if st.rtol is None else st.rtol), atol=atol,
+                m, ds, targets,
+                max_steps=int(self.max_steps if st.max_steps is None else st.max_steps),
+                rtol=float(self.rtol if st.rtol is None else st.rtol), atol=self.atol,
                 label=f"stage {si}" if verbose else None)
             entry = {"stage": si, "start": tr, "free": names, "half": half, "chi2": chi2,
                      "kind": kind, "status": status, "steps": n,
@@ -232,134 +286,41 @@ def fit(model: ImageModel, data, *, stages: Sequence[Solve | Hop | Repeat | Mapp
                 best = (chi2, vals, status, ok, n, m, entry, lin)
         _, values, status, ok, steps, m, entry, lin = best
         for k in names:
-            last_stage[k] = si
+            self.last_stage[k] = si
+        spike_errors = state.spike_errors
         if kind != "pixels":  # from the solver's last linearisation where it serves
             errs = _errors(m, ds, values, targets, linearised=lin)[0]
             entry["errors"] = errs
             entry["directions"] = [t.directions for t in targets] if n_cap > 1 \
                 else targets[0].directions
-            spike_errors[si] = errs
-        return values, status, ok, steps, datas
+            spike_errors = {**spike_errors, si: errs}
+        return _State(values, tuple(datas), status, ok, steps, spike_errors)
 
-    def solving_before(si):
-        """The solving stages before stage ``si`` (hop and repeat stages passed over)."""
-        return [sj for sj in range(si) if isinstance(stages[sj], Solve)]
-
-    def rerun(which, v, datas):
-        """Re-run the stages ``which`` from ``v`` with σ and the pixels as they are
-        (their own noise_from_residuals and reject left out, so that what is compared
-        has one yardstick): (values, (status, ok, steps), datas)."""
-        ds = list(datas)
-        st_j, ok_j, n_j = status, ok, steps
-        for sj in which:
-            v, st_j, ok_j, n_j, ds = run_stage(sj, stages[sj].without_estimates(), v, ds)
-        return v, (st_j, ok_j, n_j), ds
-
-    def repeat(si, st, values, datas):
-        """Re-run the ``stages`` solving stages before this one, round after round, until
-        every parameter named in ``until`` moves by less than its tolerance over a round
-        (or ``max_rounds``): the fixed point of stages that fit different parameters in
-        turn (e.g. the rotation on the spikes, then the rest on all pixels), which one
-        pass leaves wherever its start put it in a long, flat valley."""
-        nonlocal status, ok, steps
-        k, until, max_rounds = st.stages, st.until, st.max_rounds
-        solving = solving_before(si)
-        names = {q2: tol for q, tol in until.items() for q2 in model.expand([q], n_cap)}
-        rounds = []
-        settled = False
-        for _ in range(max_rounds):
-            before = {q: values[q] for q in names}
-            values, (status, ok, steps), datas = rerun(solving[-k:], values, datas)
-            moved = {q: values[q] - before[q] for q in names}
-            rounds.append({"values": {q: values[q] for q in names}, "moved": moved,
-                           "chi2": chi2_at(model, datas, values)})
-            if verbose:
-                print(f"stage {si}: repeat round {len(rounds)}: " + ", ".join(
-                    f"{q} {values[q]:.6g} (moved {moved[q]:+.3g})" for q in names)
-                    + f", chi2 {rounds[-1]['chi2']:.6g}", flush=True)
-            if all(abs(moved[q]) < names[q] for q in names):
-                settled = True
-                break
-        log.append({"stage": si, "repeat": st.as_dict()["repeat"], "rounds": rounds,
-                    "settled": settled})
-        if not settled:
-            notes.append(f"repeat (stage {si}): {', '.join(names)} still moved by more than "
-                         f"the tolerance after {max_rounds} rounds: raise max_rounds or "
-                         "the tolerance.")
-        return values, datas
-
-    def hop(si, st, values, datas):
-        """Re-run the ``stages`` solving stages before this one (hop stages are passed
-        over) from ``values`` changed in each way the hop names: ``name`` moved by each
-        of ``offsets``, each name in ``flip`` negated, or the parameters of ``set`` put
-        at its values, all at once (σ as before the hop: they do not re-estimate the
-        noise); keep whichever ends at the lowest χ² on all pixels, the unchanged
-        result included."""
-        nonlocal status, ok, steps, spike_errors
-        # checked before any fitting (._stages._check_hop)
-        k = st.stages
-        solving = solving_before(si)
-        # each entry of flip: one name, or a tuple of names negated together (the twin)
-        flips = [(q,) if isinstance(q, str) else tuple(q) for q in st.flip]
-        name = st.name
-        put = dict(st.set or {})
-        ref = list(datas)
-
-        def chi2_of(v):
-            return chi2_at(model, ref, v)
-
-        put_at = _put(model, put, f"fit: stage {si}: hop set") if put else {}
-        best = (chi2_of(values), values, datas, (status, ok, steps), dict(spike_errors))
-        tried = [{"change": "none", "chi2": best[0]}]
-        moves = ([(f"{name} {float(off):+g}", {name: values[name] + float(off)})
-                  for off in st.offsets if name is not None]
-                 + [(", ".join(g) + " negated", {q: -values[q] for q in g}) for g in flips]
-                 + ([("set " + ", ".join(f"{q}={x:g}" for q, x in put.items()), put_at)]
-                    if put else []))
-        for label, change in moves:
-            v = dict(values)
-            for q, x in change.items():
-                p = model.params[q]
-                v[q] = x if p.bounds is None else min(max(x, p.bounds[0]), p.bounds[1])
-            v, (st_j, ok_j, n_j), ds = rerun(solving[-k:], v, ref)
-            c = chi2_of(v)
-            tried.append({"change": label, "chi2": c,
-                          "ends_at": {q: v[q] for q in change}})
-            if verbose:
-                print(f"stage {si}: hop {label}: ends at "
-                      f"{ {q: round(v[q], 4) for q in change} }, chi2 {c:.6g} "
-                      f"(best so far {best[0]:.6g})", flush=True)
-            if c < best[0]:
-                best = (c, v, ds, (st_j, ok_j, n_j), dict(spike_errors))
-        log.append({"stage": si, "hop": st.as_dict()["hop"], "tried": tried})
-        _, values, datas, (status, ok, steps), spike_errors = best
-        return values, datas
-
-    # every stage's mistakes (keys, names, windows, limits, scans, hops, repeats) and the
-    # starts' are found before any fitting; a repeat's (stages, until, max_rounds) kept
-    _check_fit_inputs(model, datas, stages, starts=starts, max_steps=max_steps, rtol=rtol)
-    stages = [parse_stage(st) for st in stages]
-    for si, st in enumerate(stages):
-        if isinstance(st, Hop):
-            values, datas = hop(si, st, values, datas)
-            continue
-        if isinstance(st, Repeat):
-            values, datas = repeat(si, st, values, datas)
-            continue
-        values, status, ok, steps, datas = run_stage(si, st, values, datas)
-
-    final = model.with_values(values)
-    errors, cov, chi2, dof, mimgs, msgs = _errors(final, datas, values)
-    for k in errors:
-        if last_stage.get(k) in spike_errors:
-            errors[k] = spike_errors[last_stage[k]][k]
-    resids = [np.where(d.mask, d.image - mi, 0.0) for d, mi in zip(datas, mimgs)]
-
-    def one(xs):
-        return xs[0] if n_cap == 1 else xs
-
-    return FitResult(values=values, errors=errors, free=final.free, covariance=cov, chi2=chi2,
-                     dof=dof, status=status, converged=ok, steps=steps,
-                     model_image=one(mimgs), residual=one(resids),
-                     data=one([d.image for d in datas]), mask=one([d.mask for d in datas]),
-                     warnings=notes + msgs, wall_time=time.perf_counter() - t0, stages=log)
+    def _scan(self, si: int, scan, ds, targets, values) -> dict:
+        """Move ``scan["name"]`` to the lowest χ² on its grid (noting rivals the data
+        hardly tell from it)."""
+        model = self.model
+        name = scan["name"]
+        grid, cost = scan_grid(model, ds, targets, values, **dict(scan))
+        entry = {"stage": si, "scan": dict(scan), "best": values[name]}
+        if grid.size:
+            values = {**values, name: float(grid[int(np.argmin(cost))])}
+            # Δχ² of one standard error, scaled by χ²/dof where the model's
+            # mismatch makes that exceed 1
+            n_used = sum(t.n for t in targets if hasattr(t, "n"))
+            within = max(1.0, float(np.min(cost)) / max(n_used - len(model.free), 1))
+            rivals = scan_rivals(grid, cost, within=within)
+            entry |= {"best": values[name], "rivals": rivals}
+            if rivals:
+                self.notes.append(
+                    f"stage {si}: the scan of {name} found other minima that the data "
+                    f"hardly tell from the lowest ({values[name]:g}): " + ", ".join(
+                        f"{x:g} (Δχ² {d:.3g})" for x, d in rivals[:4])
+                    + f", each within Δχ² {within:.3g} (one standard error, scaled by "
+                    "χ²/dof). The answer may belong to another of them: bound "
+                    f"{name} nearer the value you expect, or compare the fits from "
+                    "each (chi2_slice shows the curve).")
+        self.log.append(entry)
+        if self.verbose:
+            print(f"stage {si}: scan of {name}: best {values[name]:.4g}", flush=True)
+        return values

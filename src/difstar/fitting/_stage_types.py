@@ -6,10 +6,12 @@ A stage may be given as one of these or as a dict, as a manifest writes it
 :func:`difstar.fitting.fit` checks every stage before anything solves
 (:func:`._stages._check_fit_inputs`, on the dict form, so both forms get the same
 checks and the same messages), then parses each into one of these types, once
-(:func:`parse_stage`); the procedure reads only the types. The RAW fit
-(:mod:`difstar._fit_procedure`) runs the same :class:`Solve` (its ``free``, ``fix``,
-``max_steps`` and ``sigma``) and :class:`Restart`; an image fit refuses ``sigma`` and
-restarts, a RAW fit hops and repeats, each naming the stage."""
+(:func:`parse_stage`); the procedure reads only the types. One loop runs them for
+both fitters (:func:`difstar.fitting._loop.run_procedure`): the RAW fit
+(:mod:`difstar._fit_procedure`) runs :class:`Solve` (its ``free``, ``fix``,
+``max_steps`` and ``sigma``), :class:`Hop`, :class:`Repeat` and :class:`Restart`; an
+image fit refuses ``sigma`` and restarts, a RAW fit the image fit's windows, spikes and
+noise estimates, each naming the stage."""
 
 from __future__ import annotations
 

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from .._param import ForwardModel
 from .._psf import _edges, psf_bytes
 from .._validate import fmt_bytes, memory_budget
 from ._analysis import _scan, _scan_problem, spike_target
@@ -65,15 +66,18 @@ def _check_stage_keys(si: int, st: Any) -> None:
             raise FitInputError(f"fit: stage {si}: {key} has unknown options {bad}; "
                                 f"known: {sorted(opts)}.")
 
-def _check_repeat(model: ImageModel, si: int, r: Any, n_solving: int) -> None:
+def _check_repeat(model: ForwardModel, si: int, r: Any, n_solving: int,
+                  families: Sequence[str] | None = None) -> None:
     """Refuses a ``repeat`` stage that cannot be right, naming what to fix (a
-    per-capture name stands for every capture's own)."""
+    family's name, ``families``, default the per-capture names, stands for each of its
+    members)."""
+    families = model.per_capture if families is None else families
     given, r = r, (r if isinstance(r, Mapping) else {})
     k, until, max_rounds = r.get("stages", 2), r.get("until"), r.get("max_rounds", 6)
     bad = [] if isinstance(until, Mapping) and until else ["until (missing or empty)"]
     if isinstance(until, Mapping):
         bad += [f"until.{q}" for q, tol in until.items()
-                if q not in model.params and q not in model.per_capture
+                if q not in model.params and q not in families
                 or isinstance(tol, bool)
                 or not isinstance(tol, (int, float)) or not math.isfinite(tol) or tol <= 0]
     bad += sorted(set(r) - {"stages", "until", "max_rounds"})
@@ -115,7 +119,7 @@ class _InputAt(FitInputError):
     def field(self) -> str:
         return "/".join(str(q) for q in self.path)
 
-def _check_hop(model: ImageModel, si: int, h: Any, n_solving: int) -> None:
+def _check_hop(model: ForwardModel, si: int, h: Any, n_solving: int) -> None:
     """A ``hop`` stage that cannot be right, refused before any fitting (the check the
     hop makes when it runs, made up front; its message)."""
     given, h = h, (h if isinstance(h, Mapping) else {})
@@ -388,7 +392,7 @@ def _check_fit_memory(model: ImageModel, datas: Sequence[FitData]) -> None:
             f"than the {fmt_bytes(budget)} available; fit a smaller window (roi) or fewer "
             "free parameters.")
 
-def _put(model: ImageModel, put: Mapping[str, Any], where: str) -> dict[str, float]:
+def _put(model: ForwardModel, put: Mapping[str, Any], where: str) -> dict[str, float]:
     """``put`` (name → value) checked against ``model`` (known names, finite numbers)
     and kept inside each parameter's bounds."""
     if not isinstance(put, Mapping) or not put:
@@ -402,6 +406,6 @@ def _put(model: ImageModel, put: Mapping[str, Any], where: str) -> dict[str, flo
         if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
             raise FitInputError(f"{where}: {q} must be a finite number; got {x!r}.")
         p = model.params[q]
-        out[q] = float(x) if p.bounds is None else min(max(float(x), p.bounds[0]),
-                                                        p.bounds[1])
+        v = float(x) if p.bounds is None else np.clip(float(x), *p.bounds)
+        out[q] = float(v) if np.ndim(v) == 0 else v  # (a RAW fit's per-channel bounds)
     return out
