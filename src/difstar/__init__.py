@@ -46,6 +46,9 @@ from ._chain import (
 from ._colour import (
     camera_to_srgb as camera_to_srgb,
 )
+from ._detector import Blur as Blur
+from ._detector import Halo as Halo
+from ._detector import Jitter as Jitter
 from ._colour import (
     render_srgb as render_srgb,
 )

@@ -57,6 +57,7 @@ from ._sampling_rules import (
     check_sampling as check_sampling,
 )
 from ._sampling_rules import (
+    engine_crop,
     engine_fine_crop,
     engine_psf_shape,
 )
@@ -145,14 +146,16 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     sampling rules and raises :class:`SamplingError` naming the rule and the fix.
     """
     if grid.method != "engine" and (camera.lens.wavefront is not None
-                                    or camera.sensor.spectral_weights is not None):
-        # the other paths model one wavelength per channel and no wavefront: refuse
-        # rather than silently drop them (structure, not values: decided at trace time)
+                                    or camera.sensor.spectral_weights is not None
+                                    or camera.sensor.blur is not None):
+        # the other paths model one wavelength per channel, no wavefront and no blur:
+        # refuse rather than silently drop them (structure, not values: at trace time)
         raise ValueError(
-            f"simulate: Grid.method={grid.method!r} models one wavelength per channel and no "
-            "wavefront error, but this camera has a lens wavefront or a spectral sensor; use "
-            "difstar.choose_grid(camera, scene, crop=...) (it picks method='engine') or "
-            "Grid(method='engine', psf_plan=..., source_window=...).")
+            f"simulate: Grid.method={grid.method!r} models one wavelength per channel, no "
+            "wavefront error and no detector blur, but this camera has a lens wavefront, a "
+            "spectral sensor or a Sensor.blur; use difstar.choose_grid(camera, scene, "
+            "crop=...) (it picks method='engine') or Grid(method='engine', psf_plan=..., "
+            "source_window=...).")
     check_sampling(camera, scene, grid)
     g = geometry_of(camera, scene)
     sen = camera.sensor
@@ -205,19 +208,30 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
     PSF is undersampled at the pixels) both are sampled at pitch p/q, the q × q samples
     of each pixel centred on it, and the image is their mean (the pixel's integral), the
     PSF their sum: the sum over a pixel grid alone is not the pixel integral of the
-    source convolved with an undersampled PSF (``benchmarks/independent_camera.py``)."""
+    source convolved with an undersampled PSF (``benchmarks/independent_camera.py``).
+
+    The sensor's ``blur`` (:class:`difstar.Blur`) multiplies the image's spectrum by its
+    transfer; the image is computed ``blur.reach`` pixels beyond the crop on every side
+    (:func:`engine_crop`), so that the light it moves into the crop is there."""
     sen = camera.sensor
     q = grid.oversample
     pitch = sen.pixel_pitch / q
     w = grid.source_window * q
     h, wc = grid.crop
-    fh, fw = engine_fine_crop(grid.crop, q)
+    reach = 0 if sen.blur is None else sen.blur.reach * q  # fine samples
+    fh, fw = engine_fine_crop(engine_crop(grid.crop, sen), q)
     kh, kw = engine_psf_shape((fh, fw), w)
     b = sources_image(camera, scene, g, (w, w), pixel_pitch=pitch)
     nh, nw = fast_length(kh + w - 1), fast_length(kw + w - 1)
     _, _, r0, c0 = _conv_offsets((fh, fw), (w, w))
+    r0, c0 = r0 + reach, c0 + reach  # the crop within the computed image
     b_ft = window_rfft2(b, (nh, nw))
-    i0, j0 = kh // 2 - fh // 2, kw // 2 - fw // 2  # the crop within the PSF's offsets
+    if sen.blur is not None:  # cycles per pixel at the FFT's frequencies
+        fy = jnp.fft.fftfreq(nh)[:, None] * q
+        fx = jnp.fft.rfftfreq(nw)[None, :] * q
+        b_ft = b_ft * sen.blur.transfer(fx, fy)[None]
+    fh0, fw0 = engine_fine_crop(grid.crop, q)
+    i0, j0 = kh // 2 - fh0 // 2, kw // 2 - fw0 // 2  # the crop within the PSF's offsets
     psfs, imgs = [], []
     for c in range(3):
         lam = sen.wavelengths[c]

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 
 from ._atf import SCALINGS
 from ._custom_types import Array, Float
+from ._detector import Blur
 from ._geometry import Geometry, camera_geometry
 from ._image import SOURCE_TYPES, DiscSource, PointSource
 from ._psf_engine import PSFPlan
@@ -93,6 +94,9 @@ class Sensor(eqx.Module):
         convert a φ0 characterised at one configuration).
     response: response-curve parameters. white_balance: (3,) gains R, G, B.
     colour_matrix: (3, 3) camera RGB → linear sRGB.
+    blur: the detector's blur of the linear image (a :class:`difstar.Blur` of
+        :class:`~difstar.fitting.Jitter` and :class:`~difstar.fitting.Halo` layers,
+        widths in pixels), applied to each channel before the read-out; ``None``: none.
     """
 
     pixel_pitch: float = eqx.field(static=True)
@@ -103,6 +107,7 @@ class Sensor(eqx.Module):
     response: Response
     white_balance: Float[Array, 3]
     colour_matrix: Float[Array, "3 3"]
+    blur: Blur | None
 
     def __init__(
         self,
@@ -115,6 +120,7 @@ class Sensor(eqx.Module):
         white_balance=(2.0, 1.0, 2.0),
         colour_matrix=None,
         spectral_weights=None,
+        blur=None,
     ):
         if pattern not in PATTERNS:
             raise ValueError(f"Sensor.pattern must be one of {PATTERNS}; got {pattern!r}.")
@@ -141,11 +147,15 @@ class Sensor(eqx.Module):
         self.colour_matrix = (
             jnp.eye(3) if colour_matrix is None else jnp.asarray(colour_matrix, dtype=float)
         )
+        if blur is not None and not isinstance(blur, Blur):
+            raise ValueError(f"Sensor.blur must be a difstar.Blur or None; got {blur!r}.")
+        self.blur = blur
         for name, v in (("wavelengths", self.wavelengths[:, 0] if self.wavelengths.ndim == 2
                          else self.wavelengths), ("phi0", self.phi0),
                         ("white_balance", self.white_balance)):
             if v.shape != (3,):
-                raise ValueError(f"Sensor.{name} must have 3 values (R, G, B); got shape {v.shape}.")
+                raise ValueError(f"Sensor.{name} must have 3 values (R, G, B); got shape "
+                                 f"{v.shape}.")
         if self.colour_matrix.shape != (3, 3):
             raise ValueError(
                 f"Sensor.colour_matrix must be 3 x 3; got shape {self.colour_matrix.shape}."

@@ -23,6 +23,7 @@ from ._sampling_rules import (
     _grid_bytes,
     check_cost,
     check_sampling,
+    engine_crop,
     engine_fine_crop,
     engine_oversample,
     engine_psf_shape,
@@ -111,7 +112,7 @@ def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scal
                          "odd number (each pixel's samples are centred on it), e.g. "
                          f"{q + 1}.")
     crop = tuple(int(c) for c in crop)
-    shape = engine_psf_shape(engine_fine_crop(crop, q), window * q)
+    shape = engine_psf_shape(engine_fine_crop(engine_crop(crop, camera.sensor), q), window * q)
     # one plan for every channel's wavelengths; each channel is one PSF call of its K
     # (their count per channel was checked with the camera)
     plan = _plan(camera.lens.pupil, wavelength=np.ravel(lams), z_image=z_r,
@@ -186,7 +187,9 @@ def choose_grid(
     polygon = isinstance(camera.lens.pupil, (Polygon, RegularPolygon))
     # the closed form's cost grows with the edges: above MAX_EXACT_EDGES, the fft grid
     few_edges = _edges(camera.lens.pupil) <= MAX_EXACT_EDGES
-    exact_ok = in_focus and polygon and few_edges and not spectral and not aberrated
+    blurred = camera.sensor.blur is not None  # the detector's blur: the engine's alone
+    exact_ok = (in_focus and polygon and few_edges and not spectral and not aberrated
+                and not blurred)
     # pixels that undersample the intensity: the exact and fft paths sample the PSF at
     # the pixel centres, 15-170x farther from a pixel-integrating camera than the engine's
     # sub-pixel grid (BENCHMARKS.md, "The chain against an independent camera")
@@ -199,11 +202,11 @@ def choose_grid(
     if method == "engine" and n is None and padding is None:
         return _engine_grid(camera, scene, crop, accuracy=accuracy, raw_only=raw_only,
                             scaling=scaling, oversample=oversample)
-    if method == "fft" and (spectral or aberrated):
+    if method == "fft" and (spectral or aberrated or blurred):
         raise ValueError(
-            f"choose_grid: method={method!r} models one wavelength per channel and no wavefront "
-            "error; this camera has a spectral sensor or a lens wavefront: use method='engine' "
-            "(the default for it).")
+            f"choose_grid: method={method!r} models one wavelength per channel, no wavefront "
+            "error and no detector blur; this camera has a spectral sensor, a lens wavefront "
+            "or a Sensor.blur: use method='engine' (the default for it).")
     if method == "exact":
         if polygon and not few_edges:
             raise InputError(
@@ -212,8 +215,9 @@ def choose_grid(
                 "and memory grow with each edge); use method='fft' or leave method unset.")
         if not exact_ok:
             raise ValueError(
-                "choose_grid: method='exact' needs an in-focus scene and a Polygon or "
-                "RegularPolygon pupil; use method='fft'."
+                "choose_grid: method='exact' needs an in-focus scene, a Polygon or "
+                "RegularPolygon pupil, one wavelength per channel, no wavefront error and no "
+                "Sensor.blur; use method='engine' (or leave method unset)."
             )
         ext = scene_extent(camera, scene)
         q = 1  # the closed form at the pixel centres: no grid, nothing to oversample

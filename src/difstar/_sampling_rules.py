@@ -284,6 +284,13 @@ def engine_oversample(bandwidth_cycles_per_pixel: float) -> int:
     return q if q % 2 else q + 1
 
 
+def engine_crop(crop: tuple[int, int], sensor) -> tuple[int, int]:
+    """The pixels the engine computes for ``crop``: the crop and, where the sensor has a
+    blur, ``blur.reach`` pixels more on every side (the light it moves into the crop)."""
+    r = 0 if sensor.blur is None else sensor.blur.reach
+    return int(crop[0]) + 2 * r, int(crop[1]) + 2 * r
+
+
 def engine_psf_shape(crop: tuple[int, int], source_window: int) -> tuple[int, int]:
     """The PSF offsets a crop needs from a centred source window: (h + s − 1, w + s − 1)."""
     return crop[0] + source_window - 1, crop[1] + source_window - 1

@@ -6,104 +6,25 @@ extent (a disc, an image) where the source is not a point.
 :class:`ImageModel` composes them: a :class:`Jitter`, a list of :class:`Halo` layers
 (each named by its user), a :class:`NativePixel` for oversampled data, and a
 :class:`Resampling` kernel for a co-add. A blur's transfer is a product, so the order of
-the layers does not change the image. A new layer is a class here with its test (see
-docs/design.md, "Where to add")."""
+the layers does not change the image. :class:`Jitter` and :class:`Halo`, which the
+camera chain applies too (:class:`difstar.Blur`), live in :mod:`difstar._detector`. A new
+layer is a class here (or there, for both) with its test (see docs/design.md, "Where to
+add")."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from collections.abc import Mapping
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import jax.numpy as jnp
 import numpy as np
 
+from .._detector import DetectorLayer as DetectorLayer
+from .._detector import Halo as Halo
+from .._detector import Jitter as Jitter
 from ._params import FitInputError
-
-
-class DetectorLayer:
-    """One layer of the detector. ``parameters``: its named parameters with their
-    defaults; ``units``: theirs; :meth:`transfer`: its factor on the image's spectrum
-    at frequencies ``fx`` (columns) and ``fy`` (rows), cycles per data pixel, for the
-    values ``v`` (traceable). ``on_data_grid``: it acts on the data's pixels themselves,
-    after they sample the image (computed on the data's grid only)."""
-
-    on_data_grid: ClassVar[bool] = False
-
-    @property
-    def parameters(self) -> dict[str, float]:
-        return {}
-
-    @property
-    def units(self) -> dict[str, str]:
-        return {}
-
-    def transfer(self, v: Mapping[str, Any], fx, fy):
-        raise NotImplementedError
-
-
-def _gaussian(sigma, fx, fy):
-    """The transfer of a unit Gaussian of σ ``sigma`` data pixels."""
-    return jnp.exp(-2 * math.pi**2 * sigma**2 * (fx**2 + fy**2))
-
-
-@dataclasses.dataclass(frozen=True)
-class Jitter(DetectorLayer):
-    """A Gaussian blur of σ ``jitter`` data pixels (pointing jitter, charge diffusion)."""
-
-    @property
-    def parameters(self) -> dict[str, float]:
-        return {"jitter": 0.0}
-
-    @property
-    def units(self) -> dict[str, str]:
-        return {"jitter": "data px, Gaussian sigma"}
-
-    def transfer(self, v, fx, fy):
-        return _gaussian(v["jitter"], fx, fy)
-
-
-#: a halo's name: a parameter name of its own (letters, digits, underscores)
-_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-
-
-@dataclasses.dataclass(frozen=True)
-class Halo(DetectorLayer):
-    """A fraction of the light moved into a Gaussian: parameters ``<name>`` (the
-    fraction, 0 … 1; default 0, off) and ``<name>_width`` (its σ in data pixels;
-    default ``width``). Scattered light; a segmented mirror's phasing errors, which
-    spread light over about one segment's diffraction pattern; a co-add's
-    misregistration. A model may have any number, each under its own name."""
-
-    name: str = "halo"
-    width: float = 4.0
-
-    def __post_init__(self):
-        if not isinstance(self.name, str) or not _NAME.fullmatch(self.name) or (
-                re.fullmatch(r"z\d+", self.name)):
-            raise FitInputError(f"Halo: name {self.name!r} must be letters, digits and "
-                                "underscores, starting with a letter (and not z<j>, a "
-                                "Zernike term), e.g. 'halo' or 'scatter'.")
-        w = self.width
-        if isinstance(w, bool) or not isinstance(w, (int, float)) or not (
-                math.isfinite(w) and w > 0):
-            raise FitInputError(f"Halo {self.name!r}: width {w!r} must be a finite number "
-                                "of data pixels > 0.")
-
-    @property
-    def parameters(self) -> dict[str, float]:
-        return {self.name: 0.0, f"{self.name}_width": float(self.width)}
-
-    @property
-    def units(self) -> dict[str, str]:
-        return {self.name: "1, fraction of the light",
-                f"{self.name}_width": "data px, Gaussian sigma"}
-
-    def transfer(self, v, fx, fy):
-        a = v[self.name]
-        return (1.0 - a) + a * _gaussian(v[f"{self.name}_width"], fx, fy)
 
 
 @dataclasses.dataclass(frozen=True)
