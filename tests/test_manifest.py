@@ -193,3 +193,34 @@ def test_a_raw_manifest_extends_another_and_keeps_its_captures(tmp_path):
     assert [c.path.resolve() for c in man.captures] == [c.path.resolve() for c in ref.captures]
     assert all(c.path.is_file() for c in man.captures)
     assert man.bases == (base,) and ref.bases == ()
+
+
+def test_the_detectors_blur_parameters_and_their_refusals():
+    """jitter and a halo's fraction and width are parameters (the halos declared in
+    detector.halos, default one named halo); the camera constants carry the halos; a
+    halo that is not declared, a fraction outside [0, 1], a negative jitter or a width
+    <= 0 are refused naming the field."""
+    from difstar._fit_run import camera_constants
+
+    d = copy.deepcopy(BASE)
+    d["parameters"]["jitter"] = {"free": True, "start": 0.5, "bounds": [0.0, 2.0]}
+    d["parameters"]["halo"] = {"start": 0.1}
+    man = manifest_from_dict(copy.deepcopy(d), path="/x/m.json")
+    assert man.parameters["jitter"]["shape"] == () and man.parameters["halo"]["shape"] == ()
+    assert [h.name for h in camera_constants(man).halos] == ["halo"]
+    d["parameters"]["scatter"] = {"start": 0.1}
+    _err(copy.deepcopy(d), r"field parameters/scatter: unknown fit parameter 'scatter'.*"
+         r"the halos' are halo, halo_width")
+    d["detector"] = {"halos": ["halo", {"name": "scatter", "width": 2.0}]}
+    man = manifest_from_dict(copy.deepcopy(d), path="/x/m.json")
+    assert [(h.name, h.width) for h in camera_constants(man).halos] == [
+        ("halo", 4.0), ("scatter", 2.0)]
+    for name, value, match in (("scatter", 1.5, r"must lie in \[0, 1\]"),
+                               ("jitter", -0.5, r"must be >= 0"),
+                               ("scatter_width", 0.0, r"must be > 0")):
+        bad = copy.deepcopy(d)
+        bad["parameters"][name] = {"start": value}
+        _err(bad, rf"field parameters/{name}/start: .*{match}")
+    bad = copy.deepcopy(d)
+    bad["detector"]["halos"] = ["halo", "halo"]
+    _err(bad, r"field detector/halos: the names \['halo'\] are given twice")

@@ -107,6 +107,37 @@ class Halo(DetectorLayer):
         return (1.0 - a) + a * _gaussian(v[f"{self.name}_width"], fx, fy)
 
 
+def halos_of(given) -> tuple[Halo, ...]:
+    """The halos a model is given: None (one, ``halo``), or a list of :class:`Halo`,
+    names, or ``{"name": ..., "width": ...}`` (as a manifest's ``detector.halos``
+    writes them); the names must differ."""
+    if given is None:
+        return (Halo(),)
+    if isinstance(given, (str, Mapping, Halo)) or not hasattr(given, "__iter__"):
+        raise FitInputError(f"halos: a list of halos (Halo, a name, or {{name, width}}); "
+                            f"got {given!r}.")
+    out = []
+    for i, h in enumerate(given):
+        try:
+            if isinstance(h, str):
+                h = Halo(h)
+            elif isinstance(h, Mapping):
+                if set(h) - {"name", "width"} or "name" not in h:
+                    raise FitInputError(f"a halo is {{name, width}}; got {dict(h)}.")
+                h = Halo(**h)
+            elif not isinstance(h, Halo):
+                raise FitInputError(f"a Halo, a name or {{name, width}}; got {h!r}.")
+        except FitInputError as e:
+            raise FitInputError(f"halos/{i}: {e}") from None
+        out.append(h)
+    names = [h.name for h in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise FitInputError(f"halos: the names {dup} are given twice; each halo needs a name "
+                            "of its own (e.g. 'halo' and 'halo2').")
+    return tuple(out)
+
+
 #: how far a blur reaches, in its widest Gaussian's σ: beyond it a Gaussian's kernel is
 #: exp(−6²/2) ≈ 1.5e-8 of its peak
 REACH_SIGMAS = 6.0
@@ -176,4 +207,4 @@ class Blur(eqx.Module):
         return out
 
 
-__all__ = ["Blur", "DetectorLayer", "Halo", "Jitter", "REACH_SIGMAS", "widths"]
+__all__ = ["Blur", "DetectorLayer", "Halo", "Jitter", "REACH_SIGMAS", "halos_of", "widths"]

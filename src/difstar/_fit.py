@@ -15,27 +15,7 @@ Poisson–Gaussian noise model and weight 0 on saturated pixels; the prediction 
 setting: an exposure bracket) share one PSF: ``simulate`` is vmapped over the exposure
 time only, and JAX keeps the PSF computation unbatched.
 
-Parameters (name → shape, unit):
-
-- ``circumradius`` (), m — exit-pupil circumradius of the regular n-gon;
-- ``curvature`` (), 1 — every blade's relative edge curvature R·κ (present: the iris is a
-  :class:`difstar.CurvedIris`, 0 straight, 1 the circumscribed circle; absent: straight);
-- ``z<j>`` (), nm RMS — the Noll-``j`` Zernike term of the wavefront (j ≥ 2; e.g. ``z11``
-  spherical aberration), normalised over a circle of the camera's ``zernike_radius``
-  (nm, as in image-fit manifests);
-- ``rotation`` (), rad — angle of the first vertex (a regular n-gon is only defined
-  modulo 2π/n; :func:`difstar._fit_truth.wrap_rotation` compares angles accordingly);
-- ``vertex_radial`` (n,), fraction of the circumradius, and ``vertex_angular`` (n,),
-  rad — per-vertex deviations from the regular polygon, mean removed (the mean is the
-  circumradius and the rotation); with both free the vertices are free;
-- ``defocus/<config>`` (), m — Δz of each configuration (absent: Δz from geometry);
-- ``source_radius`` (), m in the object plane;
-- ``source_offset/<config>`` (2,), pixels (row, col) — sub-pixel correction to the
-  rough source position given for the captures of that configuration;
-- ``phi0`` (3,), s; ``toe`` (3,); ``knee`` (3,) — exposure scale and response curve
-  per channel (R, G, B), see ``_sensor.py``;
-- ``background`` (3,), relative radiance added to the image;
-- ``exposure_scale/<capture>`` () — multiplies the capture's nominal exposure time.
+The parameters, their shapes and units: :mod:`difstar._fit_params`.
 """
 
 from __future__ import annotations
@@ -52,6 +32,15 @@ import numpy as np
 
 from ._batch import device_mesh
 from ._chain import Camera, Grid, Lens, Scene, Sensor, geometry_of, read_out, simulate
+from ._detector import Blur, Halo
+from ._fit_params import IRIS_ONLY as IRIS_ONLY
+from ._fit_params import UNITS as UNITS
+from ._fit_params import base_name as base_name
+from ._fit_params import blur_layers, blur_reach
+from ._fit_params import builder_parameters as builder_parameters
+from ._fit_params import param_shape as param_shape
+from ._fit_params import unit_of as unit_of
+from ._fit_params import zernike_index as zernike_index
 from ._image import DiscSource
 from ._lm import LMStepper, SolveResult, normal_covariance, with_batched_jacobian
 from ._param import ForwardModel, Param
@@ -62,68 +51,6 @@ from ._zernike import Zernike
 
 SHARED = ("circumradius", "curvature", "rotation", "vertex_radial", "vertex_angular",
           "source_radius", "phi0", "toe", "knee", "background")
-UNITS = {
-    "circumradius": "m", "curvature": "1", "zernike": "nm", "rotation": "rad",
-    "vertex_radial": "1", "vertex_angular": "rad",
-    "defocus": "m", "source_radius": "m", "source_offset": "px", "phi0": "s", "toe": "1",
-    "knee": "1", "background": "1", "exposure_scale": "1",
-    # a pupil builder's parameters (CameraConstants.pupil): exit-pupil metres, degrees
-    "radius": "m", "obstruction": "m", "strut_width": "m", "flat_to_flat": "m", "gap": "m",
-    "strut_spread": "deg", "strut_tilt": "deg",
-}
-
-
-#: the parameters of the blades iris (no CameraConstants.pupil) only
-IRIS_ONLY = ("circumradius", "curvature", "vertex_radial", "vertex_angular")
-
-
-def base_name(name: str) -> str:
-    return name.split("/", 1)[0]
-
-
-def zernike_index(name: str) -> int | None:
-    """j for a parameter named ``z<j>`` (a Zernike term), else None."""
-    if len(name) > 1 and name[0] == "z" and name[1:].isdigit():
-        return int(name[1:])
-    return None
-
-
-def unit_of(name: str) -> str:
-    return UNITS["zernike"] if zernike_index(name) is not None else UNITS[base_name(name)]
-
-
-def param_shape(name: str, n_blades: int, pupil=None) -> tuple[int, ...]:
-    """The shape of parameter ``name``; ``pupil`` (a :class:`difstar.PupilBuilder`, as
-    :attr:`CameraConstants.pupil`) adds its named parameters, each a number."""
-    b = base_name(name)
-    if pupil is not None and b in builder_parameters(pupil):
-        return ()
-    if pupil is not None and b in IRIS_ONLY:
-        raise ValueError(f"{name!r} belongs to the blades iris; a camera.pupil builder "
-                         f"({pupil.name!r}) has {', '.join(sorted(builder_parameters(pupil)))}")
-    if b in ("vertex_radial", "vertex_angular"):
-        return (n_blades,)
-    if b in ("phi0", "toe", "knee", "background"):
-        return (3,)
-    if b == "source_offset":
-        return (2,)
-    if b in ("circumradius", "curvature", "rotation", "defocus", "source_radius",
-             "exposure_scale"):
-        return ()
-    j = zernike_index(b)
-    if j is not None and j >= 2:
-        return ()
-    known = "" if pupil is None else (f"; this pupil ({pupil.name!r}) has "
-                                      f"{', '.join(sorted(builder_parameters(pupil)))}")
-    raise ValueError(f"unknown fit parameter {name!r}{known}")
-
-
-def builder_parameters(pupil) -> dict[str, float]:
-    """A pupil builder's parameters a RAW fit can name, with their defaults (those a
-    camera's single pupil has: not the segmented pupils' ``incoherent`` fraction)."""
-    return {k: v for k, v in pupil.defaults.items() if k != "incoherent"}
-
-
 @dataclasses.dataclass(frozen=True)
 class CameraConstants:
     """What the fit takes as known. Lengths in metres."""
@@ -143,6 +70,9 @@ class CameraConstants:
     #: ``rotation``; ``n_blades`` is then only the period 2π/n of the rotation. None:
     #: the ``n_blades`` iris of ``circumradius`` (and ``curvature``, vertex deviations).
     pupil: Any = None
+    #: the detector's halos (:class:`difstar.Halo`): each one's parameters ``<name>`` and
+    #: ``<name>_width`` may be fitted (a halo is on where its fraction is a parameter)
+    halos: tuple = (Halo(),)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -181,7 +111,8 @@ class FitModel(ForwardModel):
             if not isinstance(p, Param):
                 raise ValueError(f"parameter {name}: expected a difstar Param; got "
                                  f"{type(p).__name__}")
-            want = param_shape(name, self.camera.n_blades, self.camera.pupil)
+            want = param_shape(name, self.camera.n_blades, self.camera.pupil,
+                               self.camera.halos)
             if p.shape != want:
                 raise ValueError(f"parameter {name}: shape {p.shape}, expected {want}")
             if p.free and p.bounds is None:
@@ -204,7 +135,7 @@ class FitModel(ForwardModel):
         return tuple(c for c in self.captures if c.config == config)
 
     def unit(self, name: str) -> str:
-        return unit_of(name)
+        return unit_of(name, self.camera.halos)
 
     def with_values(self, values, free=None) -> FitModel:
         """A copy with ``values`` as the starts (bounds kept) and, given ``free``, only
@@ -293,12 +224,19 @@ def wavefront_of(model: FitModel, x: dict):
 
 
 def sensor_of(model: FitModel, x: dict) -> Sensor:
-    """The camera's sensor with the exposure scale φ0 and response curves of ``x``."""
+    """The camera's sensor with the exposure scale φ0, response curves and detector blur
+    (:func:`difstar._fit_params.blur_layers`) of ``x``."""
     cc = model.camera
+    layers = blur_layers(model.params, cc.halos)
+    blur = None
+    if layers:
+        names = [k for layer in layers for k in layer.parameters]
+        blur = Blur(layers, {k: x[k] for k in names if k in x},
+                    reach=blur_reach(model.params, layers))
     return Sensor(
         pixel_pitch=cc.pixel_pitch, pattern=cc.pattern, wavelengths=cc.wavelengths,
         phi0=x["phi0"], response=Response(toe=x["toe"], knee=x["knee"]),
-        white_balance=cc.white_balance, colour_matrix=cc.colour_matrix,
+        white_balance=cc.white_balance, colour_matrix=cc.colour_matrix, blur=blur,
     )
 
 

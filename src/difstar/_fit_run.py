@@ -51,7 +51,7 @@ def camera_constants(man):
         white_balance=tuple(float(w) for w in c["white_balance"]),
         colour_matrix=None if "colour_matrix" not in c else tuple(map(tuple, c["colour_matrix"])),
         zernike_radius=None if "zernike_radius" not in c else float(c["zernike_radius"]),
-        pupil=camera_pupil(c, man.path),
+        pupil=camera_pupil(c, man.path), halos=c["halos"],
     )
 
 

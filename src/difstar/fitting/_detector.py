@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
 from typing import ClassVar
 
 import jax.numpy as jnp
@@ -24,6 +23,7 @@ import numpy as np
 from .._detector import DetectorLayer as DetectorLayer
 from .._detector import Halo as Halo
 from .._detector import Jitter as Jitter
+from .._detector import halos_of as halos_of
 from ._params import FitInputError
 
 
@@ -171,37 +171,6 @@ def source_of(source):
                                 f"(2-D array); got {source!r}.")
         return DiscSource() if source == "disc" else None
     return SourceImage(source)
-
-
-def halos_of(given) -> tuple[Halo, ...]:
-    """The halos a model is given: None (one, ``halo``), or a list of :class:`Halo`,
-    names, or ``{"name": ..., "width": ...}`` (as a manifest's ``detector.halos``
-    writes them); the names must differ."""
-    if given is None:
-        return (Halo(),)
-    if isinstance(given, (str, Mapping, Halo)) or not hasattr(given, "__iter__"):
-        raise FitInputError(f"halos: a list of halos (Halo, a name, or {{name, width}}); "
-                            f"got {given!r}.")
-    out = []
-    for i, h in enumerate(given):
-        try:
-            if isinstance(h, str):
-                h = Halo(h)
-            elif isinstance(h, Mapping):
-                if set(h) - {"name", "width"} or "name" not in h:
-                    raise FitInputError(f"a halo is {{name, width}}; got {dict(h)}.")
-                h = Halo(**h)
-            elif not isinstance(h, Halo):
-                raise FitInputError(f"a Halo, a name or {{name, width}}; got {h!r}.")
-        except FitInputError as e:
-            raise FitInputError(f"halos/{i}: {e}") from None
-        out.append(h)
-    names = [h.name for h in out]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise FitInputError(f"halos: the names {dup} are given twice; each halo needs a name "
-                            "of its own (e.g. 'halo' and 'halo2').")
-    return tuple(out)
 
 
 __all__ = ["DetectorLayer", "DiscSource", "Halo", "Jitter", "NativePixel", "Resampling",

@@ -13,8 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .._detector import halos_of
 from .._fit import param_shape, zernike_index
 from .._geometry import check_geometry
+from .._param import FitInputError
 from ._json import check_float32_doc, read_json_extends
 from ._scene import SceneError, validate
 
@@ -156,6 +158,11 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
     params: dict[str, dict] = {}
     n = int(cam["blades"])
     pupil = camera_pupil(cam, src)
+    try:
+        halos = halos_of(doc.get("detector", {}).get("halos"))
+    except FitInputError as e:
+        raise SceneError(f"{src}: field detector/{e}") from None
+    cam["halos"] = halos
     for name, p in doc["parameters"].items():
         where = f"{src}: field parameters/{name}"
         kind, _, ref = name.partition("/")
@@ -164,11 +171,11 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
         if kind == "exposure_scale" and ref not in names:
             raise SceneError(f"{where}: {ref!r} is not one of the capture names {sorted(names)}")
         try:
-            shape = param_shape(name, n, pupil)
+            shape = param_shape(name, n, pupil, halos)
         except ValueError as e:
             raise SceneError(f"{where}: {e}") from None
         start = _shaped(p["start"], shape, where + "/start")
-        _check_sign(kind, start, where + "/start")
+        _check_sign(_blur_kind(name, halos) or kind, start, where + "/start")
         free = bool(p.get("free", False))
         lo = hi = None
         if "bounds" in p:
@@ -202,7 +209,8 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
     if syn is not None:
         truth = _truth_values(syn["truth"], params, f"{src}: field synthetic/truth")
         for name, v in truth.items():
-            _check_sign(name.partition("/")[0], v, f"{src}: field synthetic/truth/{name}")
+            _check_sign(_blur_kind(name, halos) or name.partition("/")[0], v,
+                        f"{src}: field synthetic/truth/{name}")
         missing = [k for k in params if k not in truth]
         if missing:
             raise SceneError(f"{src}: field synthetic/truth: missing values for {missing}")
@@ -266,8 +274,19 @@ def _truth_values(values: dict, params: dict, where: str) -> dict:
 
 
 #: parameters that must be > 0 (or >= 0) to mean anything
-_POSITIVE = ("circumradius", "source_radius", "phi0", "knee", "exposure_scale")
-_NONNEGATIVE = ("toe", "background")
+_POSITIVE = ("circumradius", "source_radius", "phi0", "knee", "exposure_scale",
+             "halo width")
+_NONNEGATIVE = ("toe", "background", "jitter")
+
+
+def _blur_kind(name: str, halos) -> str | None:
+    """What a detector-blur parameter is (for its sign checks), or None."""
+    for h in halos:
+        if name == h.name:
+            return "halo fraction"
+        if name == f"{h.name}_width":
+            return "halo width"
+    return "jitter" if name == "jitter" else None
 
 
 def _check_sign(kind: str, a: np.ndarray, where: str) -> None:
@@ -275,6 +294,9 @@ def _check_sign(kind: str, a: np.ndarray, where: str) -> None:
         raise SceneError(f"{where}: {a.tolist()} must be > 0 ({kind} is positive).")
     if kind in _NONNEGATIVE and not np.all(a >= 0):
         raise SceneError(f"{where}: {a.tolist()} must be >= 0.")
+    if kind == "halo fraction" and not np.all((a >= 0) & (a <= 1)):
+        raise SceneError(f"{where}: {a.tolist()} must lie in [0, 1] (a halo's fraction of "
+                         "the light).")
 
 
 def _check_geometry(cam: dict, c: dict, where: str) -> None:
