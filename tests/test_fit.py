@@ -520,3 +520,39 @@ def test_a_raw_fit_recovers_the_detectors_jitter_and_halo():
     for name, want in (("jitter", 1.5), ("halo", 0.1), ("circumradius", R)):
         assert float(got[name]) == pytest.approx(want, rel=1e-4), name
     assert model.unit("jitter") == model.unit("halo_width") == "data px, Gaussian sigma"
+
+
+def test_a_raw_fit_models_a_spectral_sensor():
+    """A spectral sensor in a RAW fit (camera wavelengths as 3 lists of K with
+    spectral_weights, as a scene's sensor): with each channel's K wavelengths at its
+    trichromatic wavelength, the prediction is the trichromatic one (1e-12 of the peak,
+    float64); with the wavelengths spread over a band it differs (the colour blur of the
+    spikes), each channel by less than the band's width could move it; gradients finite."""
+    import dataclasses
+
+    from difstar._sampling import choose_grid
+
+    def prediction(cc):
+        model = dataclasses.replace(_model(), camera=cc)
+        x = {k: np.asarray(p.value) for k, p in model.params.items()}
+        camera, scene, _, _ = F.camera_scene(model, x, "c")
+        grid = choose_grid(camera, scene, crop=(48, 48), raw_only=True, method="engine")
+        model = dataclasses.replace(model, configs=(
+            dataclasses.replace(model.configs[0], grid=grid),))
+        fitter = F.Fitter(model)
+        u = F.to_unconstrained(model)
+        return np.asarray(fitter.predict(u, full=True)["c"].image), model, fitter, u
+
+    tri, *_ = prediction(CC)
+    same = tuple((w, w) for w in CC.wavelengths)
+    twice, *_ = prediction(dataclasses.replace(CC, wavelengths=same,
+                                               spectral_weights=((1, 3),) * 3))
+    assert np.abs(twice - tri).max() < 1e-12 * tri.max()
+    band = tuple((w - 20e-9, w, w + 20e-9) for w in CC.wavelengths)
+    spread, model, fitter, u = prediction(dataclasses.replace(
+        CC, wavelengths=band, spectral_weights=((1, 2, 1),) * 3))
+    assert 1e-4 * tri.max() < np.abs(spread - tri).max() < 0.2 * tri.max()
+    assert model.configs[0].grid.method == "engine"
+    _, data = _data(model, fitter=fitter)
+    j = np.asarray(fitter._jac(u + 0.01, F.make_args(model, data, u)))
+    assert np.all(np.isfinite(j)) and np.all(np.abs(j).sum(axis=0) > 0)

@@ -224,3 +224,25 @@ def test_the_detectors_blur_parameters_and_their_refusals():
     bad = copy.deepcopy(d)
     bad["detector"]["halos"] = ["halo", "halo"]
     _err(bad, r"field detector/halos: the names \['halo'\] are given twice")
+
+
+def test_a_spectral_sensor_in_a_raw_manifest():
+    """camera.wavelengths as 3 lists of K with camera.spectral_weights (as a scene's
+    sensor) reach the camera constants; ragged lists, weights without spectral
+    wavelengths and wavelengths in nanometres are refused naming the field."""
+    from difstar._fit_run import camera_constants
+
+    d = copy.deepcopy(BASE)
+    d["camera"]["wavelengths"] = [[610e-9, 590e-9], [540e-9, 520e-9], [460e-9, 440e-9]]
+    d["camera"]["spectral_weights"] = [[1, 1], [1, 2], [2, 1]]
+    cc = camera_constants(manifest_from_dict(copy.deepcopy(d), path="/x/m.json"))
+    assert cc.wavelengths[1] == (540e-9, 520e-9) and cc.spectral_weights[2] == (2.0, 1.0)
+    bad = copy.deepcopy(d)
+    bad["camera"]["wavelengths"][0] = [610e-9]
+    _err(bad, r"field camera/wavelengths: the channels' lists have 1, 2, 2 wavelengths")
+    bad = copy.deepcopy(d)
+    bad["camera"]["wavelengths"] = [600e-9, 530e-9, 450e-9]
+    _err(bad, r"field camera/spectral_weights: given, but camera/wavelengths has one")
+    bad = copy.deepcopy(d)
+    bad["camera"]["wavelengths"][2] = [460, 440]
+    _err(bad, r"field camera/wavelengths/2/0: 460 is not a wavelength in metres")

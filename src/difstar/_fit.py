@@ -60,7 +60,9 @@ class CameraConstants:
     pupil_magnification: float
     pixel_pitch: float
     pattern: str
-    wavelengths: tuple[float, float, float]
+    #: one per channel (trichromatic), or 3 tuples of K with ``spectral_weights`` (3 × K,
+    #: a spectral sensor: :class:`difstar.Sensor`'s)
+    wavelengths: tuple
     n_blades: int
     white_balance: tuple[float, float, float] = (2.0, 1.0, 2.0)
     colour_matrix: tuple | None = None
@@ -73,6 +75,7 @@ class CameraConstants:
     #: the detector's halos (:class:`difstar.Halo`): each one's parameters ``<name>`` and
     #: ``<name>_width`` may be fitted (a halo is on where its fraction is a parameter)
     halos: tuple = (Halo(),)
+    spectral_weights: tuple | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -237,6 +240,7 @@ def sensor_of(model: FitModel, x: dict) -> Sensor:
         pixel_pitch=cc.pixel_pitch, pattern=cc.pattern, wavelengths=cc.wavelengths,
         phi0=x["phi0"], response=Response(toe=x["toe"], knee=x["knee"]),
         white_balance=cc.white_balance, colour_matrix=cc.colour_matrix, blur=blur,
+        spectral_weights=cc.spectral_weights,
     )
 
 

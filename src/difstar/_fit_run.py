@@ -40,6 +40,11 @@ from difstar.io._scene import SceneError
 
 # ------------------------------------------------------------------------ model setup
 
+def _nested_tuple(v):
+    """Numbers as floats, lists as tuples (3 numbers, or 3 lists of K)."""
+    return tuple(_nested_tuple(x) for x in v) if isinstance(v, (list, tuple)) else float(v)
+
+
 def camera_constants(man):
     c = man.camera
     return CameraConstants(
@@ -47,7 +52,9 @@ def camera_constants(man):
         principal_separation=float(c["principal_separation"]),
         pupil_magnification=float(c["pupil_magnification"]),
         pixel_pitch=float(c["pixel_pitch"]), pattern=c.get("pattern", "RGGB"),
-        wavelengths=tuple(float(w) for w in c["wavelengths"]), n_blades=int(c["blades"]),
+        wavelengths=_nested_tuple(c["wavelengths"]), n_blades=int(c["blades"]),
+        spectral_weights=(None if c.get("spectral_weights") is None
+                          else _nested_tuple(c["spectral_weights"])),
         white_balance=tuple(float(w) for w in c["white_balance"]),
         colour_matrix=None if "colour_matrix" not in c else tuple(map(tuple, c["colour_matrix"])),
         zernike_radius=None if "zernike_radius" not in c else float(c["zernike_radius"]),

@@ -18,7 +18,7 @@ from .._fit import param_shape, zernike_index
 from .._geometry import check_geometry
 from .._param import FitInputError
 from ._json import check_float32_doc, read_json_extends
-from ._scene import SceneError, validate
+from ._scene import SceneError, check_sensor_spectrum, validate
 
 DEFAULT_WAVELENGTHS = (600e-9, 530e-9, 450e-9)
 
@@ -105,6 +105,8 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
     capture files)."""
     path = Path(path)
     src = str(path)
+    check_sensor_spectrum(doc.get("camera") if isinstance(doc, dict) else None, at="camera",
+                          source=src)
     validate(doc, "fit_manifest", source=src)
     check_float32_doc(doc, source=src)
     cam = dict(doc["camera"])

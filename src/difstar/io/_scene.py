@@ -96,9 +96,15 @@ def _check_spectrum(doc, *, source: str) -> None:
         raise SceneError(str(exc)) from None
     sd = doc.get("camera") if isinstance(doc, dict) else None
     sd = sd.get("sensor") if isinstance(sd, dict) else None
+    check_sensor_spectrum(sd, at="camera/sensor", source=source)
+
+
+def check_sensor_spectrum(sd, *, at: str, source: str) -> None:
+    """The ``wavelengths`` and ``spectral_weights`` of the block ``sd`` (a scene's
+    ``camera/sensor``, a RAW-fit manifest's ``camera``: ``at``) as
+    :func:`_check_spectrum` checks them."""
     if not isinstance(sd, dict):
         return  # the schema names what is missing
-    at = "camera/sensor"
     forms = ("give 3 numbers (one wavelength per channel R, G, B, in metres, e.g. "
              "[600e-9, 530e-9, 450e-9]) or, for a spectral sensor, 3 lists of K numbers "
              "(the same K for every channel)")
@@ -203,7 +209,8 @@ def scene_from_dict(doc: dict, *, source: str = "<scene>"):
             wavelengths=sd.get("wavelengths", (600e-9, 530e-9, 450e-9)),
             spectral_weights=sd.get("spectral_weights"),
             phi0=sd.get("phi0", (0.1, 0.1, 0.1)),
-            response=difstar.Response(resp.get("toe", (0.0, 0.0, 0.0)), resp.get("knee", (60.0,) * 3)),
+            response=difstar.Response(resp.get("toe", (0.0, 0.0, 0.0)),
+                                      resp.get("knee", (60.0,) * 3)),
             white_balance=sd.get("white_balance", (2.0, 1.0, 2.0)),
             colour_matrix=sd.get("colour_matrix"),
         )
@@ -275,7 +282,8 @@ def _shortest_float32(doc):
     return doc
 
 
-def scene_to_dict(camera, scene, grid_options: dict | None = None, *, name: str | None = None) -> dict:
+def scene_to_dict(camera, scene, grid_options: dict | None = None, *,
+                  name: str | None = None) -> dict:
     """The JSON document (schema ``scene``) for a camera and scene."""
     import difstar
 
