@@ -309,3 +309,34 @@ def test_predict_of_a_point_source_scene(tmp_path):
     assert cli.main(["predict", str(scene), "--out", str(tmp_path / "out")]) == 0
     written = json.loads((tmp_path / "out" / "scene.json").read_text())
     assert written["scene"]["sources"][0]["type"] == "point"
+
+
+def test_a_detector_blur_in_a_scene_file_loads_roundtrips_and_is_refused_when_wrong():
+    """camera.sensor.blur (a jitter and named halos, pixels) is the sensor's difstar.Blur,
+    written back the same; predicting through it blurs the image (less peak, the same
+    light); a fraction above 1 and two halos of one name are refused naming the field."""
+    doc = cli.example_document("paper-focused", crop=(24, 24))
+    doc["scene"]["sources"][0]["radius"] = 0.3e-3
+    blur = {"jitter": 1.2, "halos": [{"name": "scatter", "fraction": 0.05, "width": 3.0}]}
+    doc["camera"]["sensor"]["blur"] = copy.deepcopy(blur)
+    camera, scene, opts = scene_from_dict(copy.deepcopy(doc))
+    b = camera.sensor.blur
+    assert [type(layer).__name__ for layer in b.layers] == ["Jitter", "Halo"]
+    assert float(b.values["scatter"]) == 0.05 and b.reach == 18  # 6 × the 3 px halo
+    assert scene_to_dict(camera, scene)["camera"]["sensor"]["blur"] == blur
+    sharp = difstar.Camera(camera.lens, difstar.Sensor(
+        pixel_pitch=camera.sensor.pixel_pitch, wavelengths=camera.sensor.wavelengths))
+    blurred = difstar.Camera(camera.lens, difstar.Sensor(
+        pixel_pitch=camera.sensor.pixel_pitch, wavelengths=camera.sensor.wavelengths, blur=b))
+    img = [np.asarray(difstar.simulate(c, scene, difstar.choose_grid(
+        c, scene, crop=(24, 24), raw_only=True)).image) for c in (sharp, blurred)]
+    assert img[1].max() < 0.99 * img[0].max()
+    np.testing.assert_allclose(img[1].sum(), img[0].sum(), rtol=2e-2)  # the crop's light
+    bad = copy.deepcopy(doc)
+    bad["camera"]["sensor"]["blur"]["halos"][0]["fraction"] = 1.5
+    with pytest.raises(SceneError, match="camera/sensor/blur/halos/0/fraction"):
+        scene_from_dict(bad)
+    bad = copy.deepcopy(doc)
+    bad["camera"]["sensor"]["blur"]["halos"] *= 2
+    with pytest.raises(SceneError, match="\\['scatter', 'scatter_width'\\] belong to two"):
+        scene_from_dict(bad)

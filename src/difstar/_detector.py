@@ -177,6 +177,11 @@ class Blur(eqx.Module):
             if not isinstance(layer, (Jitter, Halo)):
                 raise FitInputError(f"Blur: layers[{i}] is {layer!r}; a camera's blur takes "
                                     "Jitter and Halo layers.")
+        names = [k for layer in layers for k in layer.parameters]
+        dup = sorted({k for k in names if names.count(k) > 1})
+        if dup:
+            raise FitInputError(f"Blur: the parameters {dup} belong to two layers; give each "
+                                "layer its own (one Jitter, halos of different names).")
         defaults = {k: v for layer in layers for k, v in layer.parameters.items()}
         values = dict(values or {})
         unknown = sorted(set(values) - set(defaults))

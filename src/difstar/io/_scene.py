@@ -178,6 +178,35 @@ def check_sensor_spectrum(sd, *, at: str, source: str) -> None:
                 "at least one weight > 0 (they are normalised per channel).")
 
 
+def _blur_from_dict(bd):
+    """A scene's ``camera/sensor/blur`` (``jitter``, ``halos``: name, fraction, width;
+    pixels) as a :class:`difstar.Blur`, or None."""
+    if not bd:
+        return None
+    import difstar
+
+    layers = [difstar.Jitter()] if "jitter" in bd else []
+    values = {"jitter": float(bd["jitter"])} if "jitter" in bd else {}
+    for h in bd.get("halos", ()):
+        layers.append(difstar.Halo(h["name"], float(h["width"])))
+        values |= {h["name"]: float(h["fraction"]), f"{h['name']}_width": float(h["width"])}
+    return difstar.Blur(layers, values) if layers else None
+
+
+def _blur_to_dict(blur) -> dict:
+    """:func:`_blur_from_dict`'s inverse."""
+    import difstar
+
+    out, halos = {}, []
+    for layer in blur.layers:
+        if isinstance(layer, difstar.Jitter):
+            out["jitter"] = float(blur.values["jitter"])
+        else:
+            halos.append({"name": layer.name, "fraction": float(blur.values[layer.name]),
+                          "width": float(blur.values[f"{layer.name}_width"])})
+    return out | ({"halos": halos} if halos else {})
+
+
 def scene_from_dict(doc: dict, *, source: str = "<scene>"):
     """(camera, scene, grid options) from a validated scene document."""
     import difstar
@@ -213,6 +242,7 @@ def scene_from_dict(doc: dict, *, source: str = "<scene>"):
                                       resp.get("knee", (60.0,) * 3)),
             white_balance=sd.get("white_balance", (2.0, 1.0, 2.0)),
             colour_matrix=sd.get("colour_matrix"),
+            blur=_blur_from_dict(sd.get("blur")),
         )
         sc = doc["scene"]
         sources = tuple(_source_from_dict(s) for s in sc["sources"])
@@ -331,6 +361,7 @@ def scene_to_dict(camera, scene, grid_options: dict | None = None, *,
                 "response": {"toe": tolist(sen.response.toe), "knee": tolist(sen.response.knee)},
                 "white_balance": tolist(sen.white_balance),
                 "colour_matrix": tolist(sen.colour_matrix),
+                **({} if sen.blur is None else {"blur": _blur_to_dict(sen.blur)}),
             },
         },
         "scene": {
