@@ -105,8 +105,8 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
     capture files)."""
     path = Path(path)
     src = str(path)
-    check_sensor_spectrum(doc.get("camera") if isinstance(doc, dict) else None, at="camera",
-                          source=src)
+    check_sensor_spectrum(doc, doc.get("camera") if isinstance(doc, dict) else None,
+                          at="camera", source=src)
     validate(doc, "fit_manifest", source=src)
     check_float32_doc(doc, source=src)
     cam = dict(doc["camera"])

@@ -90,19 +90,20 @@ def _check_spectrum(doc, *, source: str) -> None:
     beyond it (equal lengths, weights with a positive sum): 3 numbers (trichromatic), or
     3 lists of K numbers with optional ``spectral_weights`` of the same shape (spectral).
     Raises :class:`SceneError` naming the field and the fix."""
+    sd = doc.get("camera") if isinstance(doc, dict) else None
+    sd = sd.get("sensor") if isinstance(sd, dict) else None
+    check_sensor_spectrum(doc, sd, at="camera/sensor", source=source)
+
+
+def check_sensor_spectrum(doc, sd, *, at: str, source: str) -> None:
+    """The ``wavelengths`` and ``spectral_weights`` of the block ``sd`` of ``doc`` (a
+    scene's ``camera/sensor``, a RAW-fit manifest's ``camera``: ``at``) as
+    :func:`_check_spectrum` checks them, after ``doc``'s NaN and infinities are refused
+    (each named as such)."""
     try:
         check_finite_doc(doc, source=source)
     except InputError as exc:
         raise SceneError(str(exc)) from None
-    sd = doc.get("camera") if isinstance(doc, dict) else None
-    sd = sd.get("sensor") if isinstance(sd, dict) else None
-    check_sensor_spectrum(sd, at="camera/sensor", source=source)
-
-
-def check_sensor_spectrum(sd, *, at: str, source: str) -> None:
-    """The ``wavelengths`` and ``spectral_weights`` of the block ``sd`` (a scene's
-    ``camera/sensor``, a RAW-fit manifest's ``camera``: ``at``) as
-    :func:`_check_spectrum` checks them."""
     if not isinstance(sd, dict):
         return  # the schema names what is missing
     forms = ("give 3 numbers (one wavelength per channel R, G, B, in metres, e.g. "
