@@ -142,3 +142,25 @@ def test_bad_blurs_are_refused_naming_the_field_and_the_fix():
     assert difstar.Blur([difstar.Jitter(), difstar.Halo()], {"jitter": 1.2}).reach == 8
     assert difstar.Blur([difstar.Jitter(), difstar.Halo()],
                         {"jitter": 1.2, "halo": 0.1}).reach == 24
+
+
+def test_a_grid_holds_the_blurs_reach_and_a_huge_blur_is_refused_before_any_work():
+    """The grid records the reach it was planned for (Grid.blur_reach, from choose_grid):
+    a blurred camera on a grid planned without its blur is refused naming the fix, and a
+    blur whose reach needs more memory than the machine has is refused when the grid is
+    planned, before anything is computed."""
+    camera, scene = _scene()
+    blurred = _with_blur(camera, difstar.Blur([difstar.Jitter()], {"jitter": 1.0}))
+    grid = choose_grid(blurred, scene, crop=(16, 16), raw_only=True)
+    assert grid.blur_reach == 6
+    plain = choose_grid(camera, scene, crop=(16, 16), raw_only=True, method="engine")
+    assert plain.blur_reach == 0
+    with pytest.raises(ValueError, match="reaches 6 px.*plan the grid with this camera"):
+        difstar.simulate(blurred, scene, plain)
+    # a sharp camera on a grid with room for a blur: the same image as on its own grid
+    np.testing.assert_allclose(np.asarray(sim(camera, scene, grid).image),
+                               np.asarray(sim(camera, scene, plain).image), rtol=1e-12,
+                               atol=1e-15)
+    huge = _with_blur(camera, difstar.Blur([difstar.Jitter()], {"jitter": 1e5}))
+    with pytest.raises(ValueError, match="memory"):
+        choose_grid(huge, scene, crop=(16, 16), raw_only=True)

@@ -211,15 +211,21 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
     source convolved with an undersampled PSF (``benchmarks/independent_camera.py``).
 
     The sensor's ``blur`` (:class:`difstar.Blur`) multiplies the image's spectrum by its
-    transfer; the image is computed ``blur.reach`` pixels beyond the crop on every side
-    (:func:`engine_crop`), so that the light it moves into the crop is there."""
+    transfer; the image is computed ``grid.blur_reach`` pixels beyond the crop on every
+    side (:func:`engine_crop`; at least the blur's reach), so that the light it moves into
+    the crop is there."""
     sen = camera.sensor
+    if sen.blur is not None and sen.blur.reach > grid.blur_reach:
+        raise ValueError(
+            f"simulate: the sensor's blur reaches {sen.blur.reach} px, but the grid computes "
+            f"{grid.blur_reach} px beyond the crop (Grid.blur_reach): plan the grid with "
+            "this camera (difstar.choose_grid(camera, scene, crop=...)).")
     q = grid.oversample
     pitch = sen.pixel_pitch / q
     w = grid.source_window * q
     h, wc = grid.crop
-    reach = 0 if sen.blur is None else sen.blur.reach * q  # fine samples
-    fh, fw = engine_fine_crop(engine_crop(grid.crop, sen), q)
+    reach = grid.blur_reach * q  # fine samples
+    fh, fw = engine_fine_crop(engine_crop(grid.crop, grid.blur_reach), q)
     kh, kw = engine_psf_shape((fh, fw), w)
     b = sources_image(camera, scene, g, (w, w), pixel_pitch=pitch)
     nh, nw = fast_length(kh + w - 1), fast_length(kw + w - 1)

@@ -209,6 +209,10 @@ class Grid(eqx.Module):
     period in pixels where ``choose_grid``'s ``n`` or ``padding`` set it (else the crop's
     side), and ``oversample`` the odd number of samples a side that integrate each pixel.
 
+    ``blur_reach`` (engine): the pixels computed beyond the crop on every side for the
+    sensor's blur (:class:`difstar.Blur`; ``choose_grid`` sets it to the blur's reach),
+    so that the light it moves into the crop is there.
+
     On the FFT path a non-zero ``source_window`` (odd, pixels) computes the geometric
     image only on that centred window, and ``pupil_window`` (even, samples of the n·q
     frequency grid) computes the pupil's ATF only on that centred window; both must hold
@@ -225,6 +229,7 @@ class Grid(eqx.Module):
     source_window: int = eqx.field(static=True, default=0)
     pupil_window: int = eqx.field(static=True, default=0)
     psf_plan: PSFPlan | None = eqx.field(static=True, default=None)
+    blur_reach: int = eqx.field(static=True, default=0)
 
     def __check_init__(self):
         if self.method not in METHODS:
@@ -255,6 +260,9 @@ class Grid(eqx.Module):
             )
         if self.n < 8:
             raise ValueError(f"Grid.n must be >= 8 pixels; got {self.n}.")
+        if not isinstance(self.blur_reach, int) or self.blur_reach < 0:
+            raise ValueError(f"Grid.blur_reach must be a whole number of pixels >= 0; got "
+                             f"{self.blur_reach!r}.")
         if self.oversample < 1:
             raise ValueError(f"Grid.oversample must be >= 1; got {self.oversample}.")
         if self.crop[0] > self.n or self.crop[1] > self.n:

@@ -112,7 +112,8 @@ def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scal
                          "odd number (each pixel's samples are centred on it), e.g. "
                          f"{q + 1}.")
     crop = tuple(int(c) for c in crop)
-    shape = engine_psf_shape(engine_fine_crop(engine_crop(crop, camera.sensor), q), window * q)
+    reach = 0 if camera.sensor.blur is None else camera.sensor.blur.reach
+    shape = engine_psf_shape(engine_fine_crop(engine_crop(crop, reach), q), window * q)
     # one plan for every channel's wavelengths; each channel is one PSF call of its K
     # (their count per channel was checked with the camera)
     plan = _plan(camera.lens.pupil, wavelength=np.ravel(lams), z_image=z_r,
@@ -124,7 +125,7 @@ def _engine_grid(camera: Camera, scene: Scene, crop, *, accuracy, raw_only, scal
     grid = Grid(n=max(crop) if n is None else max(n, *crop), oversample=q, crop=crop,
                 use_defocus=plan.use_defocus,
                 raw_only=raw_only, scaling=scaling, method="engine", source_window=window,
-                psf_plan=plan)
+                psf_plan=plan, blur_reach=reach)
     check_cost(camera, grid, where="choose_grid")
     return grid
 

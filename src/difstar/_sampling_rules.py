@@ -131,12 +131,14 @@ def simulate_bytes(camera: Camera, grid: Grid) -> int:
     """Lower estimate of the bytes :func:`difstar.simulate` holds for this grid, from
     static shapes only (the grid, the wavelengths' count, the pupil's edges): the n·q
     grid (fft); the crop's offsets and the closed form's plane per edge (exact); the
-    engine's PSF (:func:`difstar._psf.psf_bytes`) and the crop's offsets (engine)."""
+    engine's PSF (:func:`difstar._psf.psf_bytes`) and the crop's offsets, with the
+    sensor blur's reach around it (engine)."""
     if grid.method == "fft":
         return _grid_bytes(grid.n * grid.oversample)
-    if grid.method == "engine":  # its sub-grid at pitch p/q
+    if grid.method == "engine":  # its sub-grid at pitch p/q, the blur's reach around
         q = grid.oversample
-        kh, kw = engine_psf_shape(engine_fine_crop(grid.crop, q), grid.source_window * q)
+        kh, kw = engine_psf_shape(engine_fine_crop(engine_crop(grid.crop, grid.blur_reach), q),
+                                  grid.source_window * q)
     else:
         kh, kw = engine_psf_shape(grid.crop, grid.source_window)
     edges = _edges(camera.lens.pupil)
@@ -169,8 +171,11 @@ def check_cost(camera: Camera, grid: Grid, where: str = "difstar.simulate") -> N
                  what=(f"the {grid.method} grid ({grid.n} px a side, oversample "
                        f"{grid.oversample}: {side} samples a side)" if grid.method == "fft"
                        else f"the {grid.method} method on a {grid.crop[0]} x {grid.crop[1]} "
-                            f"px crop (source window {grid.source_window} px)"),
-                 fix="use a smaller crop, grid or padding (difstar.choose_grid sizes them).")
+                            f"px crop (source window {grid.source_window} px"
+                            + (f", the blur's reach {grid.blur_reach} px"
+                               if grid.blur_reach else "") + ")"),
+                 fix="use a smaller crop, grid, padding or blur (difstar.choose_grid sizes "
+                     "them).")
 
 
 def check_sampling(camera: Camera, scene: Scene, grid: Grid) -> None:
@@ -284,11 +289,11 @@ def engine_oversample(bandwidth_cycles_per_pixel: float) -> int:
     return q if q % 2 else q + 1
 
 
-def engine_crop(crop: tuple[int, int], sensor) -> tuple[int, int]:
-    """The pixels the engine computes for ``crop``: the crop and, where the sensor has a
-    blur, ``blur.reach`` pixels more on every side (the light it moves into the crop)."""
-    r = 0 if sensor.blur is None else sensor.blur.reach
-    return int(crop[0]) + 2 * r, int(crop[1]) + 2 * r
+def engine_crop(crop: tuple[int, int], reach: int) -> tuple[int, int]:
+    """The pixels the engine computes for ``crop``: the crop and ``reach`` pixels more on
+    every side (a sensor blur's, :attr:`Grid.blur_reach`: the light it moves into the
+    crop)."""
+    return int(crop[0]) + 2 * reach, int(crop[1]) + 2 * reach
 
 
 def engine_psf_shape(crop: tuple[int, int], source_window: int) -> tuple[int, int]:
