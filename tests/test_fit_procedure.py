@@ -148,7 +148,8 @@ def test_a_raw_hop_keeps_the_try_that_ends_lowest_and_a_repeat_records_its_round
 def test_a_manifests_written_procedure_runs_and_every_free_parameter_has_its_error(tmp_path):
     """The synthetic campaign on 64² regions (a manifest that extends it) with its own
     solver.stages, the second of which holds the response curves, then a hop of the
-    rotation that re-runs it: the fit runs those stages and no others, the result
+    rotation that re-runs it, and a jitter held (the detector's blur): the fit runs those
+    stages and no others, each grid computes the blur's reach beyond its region, the result
     records the hop and validates against its schema, and the standard errors are every
     free parameter's (the held ones' too, from a Jacobian of all of them at the
     answer)."""
@@ -164,6 +165,8 @@ def test_a_manifests_written_procedure_runs_and_every_free_parameter_has_its_err
     small.write_text(json.dumps({
         "extends": str(root / "fit" / "synthetic-paper-camera" / "manifest.json"),
         "roi_size": [64, 64],
+        "parameters": {"jitter": {"start": 0.3}},  # the detector's blur, held
+        "synthetic": {"truth": {"jitter": 0.3}},
         "solver": {"stages": [{"free": "all", "max_steps": 3},
                               {"fix": ["toe", "knee"], "sigma": "prediction",
                                "max_steps": 2},
@@ -177,6 +180,8 @@ def test_a_manifests_written_procedure_runs_and_every_free_parameter_has_its_err
                       "all free parameters except toe, knee, σ from the prediction "
                       "(again, σ as it was)"]
     assert records[1]["held"] == ["toe", "knee"]
+    assert all(c.grid.blur_reach == 2 for c in model.configs)  # 6 × 0.3 px
+    assert res["parameters"]["jitter"]["value"] == 0.3
     assert [t["change"] for t in records[-1]["tried"]] == ["none", "rotation +0.01"]
     for name in model.free:
         se = np.asarray(res["parameters"][name]["stderr"])

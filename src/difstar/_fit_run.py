@@ -118,7 +118,7 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
         # difstar.psf's engine on exactly the crop's offsets (padding: the grid's period)
         grid = Grid(n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz,
                     raw_only=True, method="engine", source_window=g.source_window + 2 * reach,
-                    psf_plan=plan)
+                    psf_plan=plan, blur_reach=g.blur_reach)
         configs.append(dataclasses.replace(dummy, grid=grid))
     return FitModel(cc, tuple(configs), caps, params)
 
