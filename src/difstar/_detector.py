@@ -155,6 +155,12 @@ def widths(layers: Sequence[DetectorLayer], values: Mapping[str, Any]) -> list[f
     return out
 
 
+def reach_of(layers: Sequence[DetectorLayer], values: Mapping[str, Any]) -> int:
+    """The pixels the blur of ``layers`` reaches at ``values`` (concrete):
+    :data:`REACH_SIGMAS` × its widest Gaussian σ (:func:`widths`)."""
+    return math.ceil(REACH_SIGMAS * max(widths(layers, values), default=0.0))
+
+
 class Blur(eqx.Module):
     """The detector's blur of a camera's linear image (:class:`difstar.Sensor`'s
     ``blur``): its ``layers`` (static) with their named ``values`` (traceable arrays),
@@ -193,8 +199,7 @@ class Blur(eqx.Module):
                        for k, d in defaults.items()}
         if reach is None:
             try:
-                reach = math.ceil(REACH_SIGMAS * max(widths(layers, values | {
-                    k: d for k, d in defaults.items() if k not in values}), default=0.0))
+                reach = reach_of(layers, defaults | values)
             except (TypeError, jax.errors.ConcretizationTypeError,
                     jax.errors.TracerArrayConversionError) as e:
                 raise FitInputError("Blur: give reach (pixels) where the widths are traced "
@@ -212,4 +217,5 @@ class Blur(eqx.Module):
         return out
 
 
-__all__ = ["Blur", "DetectorLayer", "Halo", "Jitter", "REACH_SIGMAS", "halos_of", "widths"]
+__all__ = ["Blur", "DetectorLayer", "Halo", "Jitter", "REACH_SIGMAS", "halos_of", "reach_of",
+           "widths"]

@@ -31,12 +31,11 @@ Parameters (name → shape, unit):
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 
 import numpy as np
 
-from ._detector import REACH_SIGMAS, Halo, Jitter
+from ._detector import Halo, Jitter, reach_of
 
 UNITS = {
     "circumradius": "m", "curvature": "1", "zernike": "nm", "rotation": "rad",
@@ -121,18 +120,14 @@ def blur_layers(params: Mapping, halos) -> tuple:
 
 
 def blur_reach(params: Mapping, layers) -> int:
-    """The pixels the blur of ``layers`` reaches at most over the fit: 6 σ of the widest
-    Gaussian, a free width at its upper bound (a static number for the chain, from the
-    parameters' concrete starts and bounds)."""
-    widest = 0.0
+    """The pixels the blur of ``layers`` reaches at most over the fit
+    (:func:`difstar._detector.reach_of`), each free parameter at its upper bound (a
+    static number for the chain, from the parameters' concrete starts and bounds; a
+    layer's parameter the fit does not name at its default)."""
+    values = {}
     for layer in layers:
         for k, default in layer.parameters.items():
-            if k != "jitter" and not k.endswith("_width"):
-                continue
             p = params.get(k)
-            if p is None:
-                w = default
-            else:
-                w = float(np.max(np.abs(np.asarray(p.hi if p.free else p.value))))
-            widest = max(widest, w)
-    return math.ceil(REACH_SIGMAS * widest)
+            values[k] = default if p is None else float(np.max(np.abs(np.asarray(
+                p.hi if p.free else p.value))))
+    return reach_of(layers, values)

@@ -118,12 +118,25 @@ def default_procedure(model, solver: dict) -> tuple:
     return tuple(stages)
 
 
+def _members(model, q: str) -> list[str]:
+    """The parameters ``q`` names: itself, or a family's members (``defocus`` →
+    ``defocus/<config>`` …)."""
+    return [k for k in model.params if k == q or base_name(k) == q]
+
+
+def _inside_bounds(p, x):
+    """``x`` kept 1e-3 of the range inside ``p``'s bounds (where the bound map's
+    unconstrained value stays finite and its slope usable)."""
+    margin = 1e-3 * (np.asarray(p.hi) - np.asarray(p.lo))
+    return np.clip(x, p.lo + margin, p.hi - margin)
+
+
 def _names(model, given, where: str) -> set[str]:
     """The model's free parameters that ``given`` names (a full name, or a family's base
     name); a name that is no parameter of the model is refused."""
     out = set()
     for q in given:
-        named = {k for k in model.params if k == q or k.split("/", 1)[0] == q}
+        named = set(_members(model, q))
         if not named:
             raise ValueError(f"{where}: {q!r} is not a parameter of the fit; known: "
                              f"{sorted(model.params)}.")
@@ -274,16 +287,11 @@ class RawRunner(StageRunner):
         vals = {k: np.asarray(v) for k, v in from_unconstrained(self.model, state.u).items()}
         for q, x in change.items():
             p = self.model.params[q]
-            margin = 1e-3 * (np.asarray(p.hi) - np.asarray(p.lo))  # the transform's ends
-            vals[q] = np.clip(np.broadcast_to(np.asarray(x, float), p.shape),
-                              p.lo + margin, p.hi - margin)
+            vals[q] = _inside_bounds(p, np.broadcast_to(np.asarray(x, float), p.shape))
         return dataclasses.replace(state, u=to_unconstrained(self.model, vals))
 
-    def put(self, state: RawState, values, where: str) -> dict:
-        return dict(values)  # checked with the procedure; kept inside bounds by moved()
-
     def expand(self, names) -> list[str]:
-        return [k for q in names for k in self.model.params if k == q or base_name(k) == q]
+        return [k for q in names for k in _members(self.model, q)]
 
     def loss(self, state: RawState, ref: RawState) -> float:
         if state.data is ref.data and state.solved is not None \
@@ -377,8 +385,7 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
         for f in factors:
             vals = {k: np.asarray(v) for k, v in from_unconstrained(model, solved.u).items()}
             x = vals[parameter].copy()
-            span = spec.hi[ch] - spec.lo[ch]
-            x[ch] = np.clip(x[ch] * f, spec.lo[ch] + 1e-3 * span, spec.hi[ch] - 1e-3 * span)
+            x[ch] = _inside_bounds(spec, x * f)[ch]
             vals[parameter] = x
             res = fitter.solve_sensor(to_unconstrained(model, vals), sensor_args,
                                       max_steps=max_steps, ftol=ftol)
