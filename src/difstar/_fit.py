@@ -516,7 +516,7 @@ def _covariance(model: FitModel, j: np.ndarray, r: np.ndarray, u):
         x = from_unconstrained(model, u_)
         return jnp.concatenate([x[k].ravel() for k in model.free])
 
-    dxdu = np.asarray(jax.jacfwd(xflat)(u))
+    dxdu = np.asarray(jax.jit(jax.jacfwd(xflat))(u))  # one program, not many eager ones
     cov = dxdu @ cov_u @ dxdu.T
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     out = {}

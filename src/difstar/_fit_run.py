@@ -13,6 +13,7 @@ import math
 import time
 from pathlib import Path
 
+import equinox as eqx
 import numpy as np
 
 from difstar import Grid
@@ -102,7 +103,8 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
             p = probe.params.get(key)
             if p is not None and p.free:
                 x[key] = 1.3 * np.abs(p.value) + 0.3 * man.parameters[key]["perturb_scale"]
-        camera, scene, _, _ = camera_scene(probe, x, name)
+        # one compiled program instead of dozens of eager operations, each compiled
+        camera, scene, _, _ = eqx.filter_jit(lambda x: camera_scene(probe, x, name))(x)
         g = choose_grid(camera, scene, crop=crop, raw_only=True,
                         oversample=man.grid.get("oversample"), accuracy=acc, padding=padding)
         plan = g.psf_plan

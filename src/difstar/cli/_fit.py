@@ -52,6 +52,7 @@ def _capture_figure(plt, shown):
 
 
 def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> list[str]:
+    import jax
     import jax.numpy as jnp
     import matplotlib
 
@@ -114,8 +115,8 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
             if ring.max() < 0.95 and cj.exposure_time >= capl[i].exposure_time:
                 i = j
         c = capl[i]
-        obs_rgb = np.asarray(demosaic(jnp.asarray(caps[c.name]["zeta"]), cc.pattern,
-                                      method="bilinear"))
+        obs_rgb = np.asarray(jax.jit(demosaic, static_argnames=("pattern", "method"))(
+            jnp.asarray(caps[c.name]["zeta"]), cc.pattern, method="bilinear"))
         pz = np.asarray(p.zeta[i])
         h, w = pz.shape[-2:]
         r0 = h // 2 + c.base_offset[0]
