@@ -380,6 +380,26 @@ def test_nan_border_is_masked_and_the_auto_values_found(tmp_path):
     assert abs(v["x0"] - 0.3) < 0.35 and abs(v["y0"] + 0.4) < 0.35
 
 
+def test_data_near_the_float_range_are_refused_with_the_reason(tmp_path):
+    """An image in absurd units (values near 1e300) is refused naming the data and the
+    fix, without NumPy's overflow warning on the way (its noise model overflows)."""
+    import warnings
+
+    from difstar.fitting import FitData, Noise, load_manifest
+
+    man = edited(("data",), {"path": "star.npy", "noise": {"read": None, "gain": 1e9,
+                                                           "floor": 0.02}})
+    p = write_case(tmp_path, man, image=star() * 1e298)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(FitInputError, match=r"field data: values up to .*e\+(29|30)\d.*"
+                                                r"rescale the data"):
+            load_manifest(p)
+        # the library's own door says why its noise model fails
+        with pytest.raises(FitInputError, match=r"the data reach .*e\+(29|30)\d.* scale the"):
+            FitData.from_array(star() * 1e298, noise=Noise(None, 1e9, 0.02))
+
+
 def test_inputs_lists_every_file_read(tmp_path):
     from difstar.fitting import load_manifest
 

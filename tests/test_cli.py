@@ -215,3 +215,18 @@ def test_fit_takes_either_kind_of_manifest(tmp_path, monkeypatch, capsys):
         assert main(["fit", str(bad)]) == 2
         err = capsys.readouterr().err
         assert word in err and "captures" in err and "pupil" in err
+
+
+def test_warnings_are_one_line(monkeypatch):
+    """The command line shows a library warning as its other messages: one line,
+    ``difstar: warning:``, with no source line of the library's code (Python's own
+    format names the file and line and prints the line of code that warned)."""
+    import warnings
+
+    from difstar.cli._main import _one_line_warnings
+
+    monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)
+    _one_line_warnings()
+    text = warnings.formatwarning("field data/path: 3 pixels\n  are NaN", UserWarning,
+                                  "/x/_manifest.py", 447, "fds = [_load_capture(d)]")
+    assert text == "difstar: warning: field data/path: 3 pixels are NaN\n"

@@ -304,10 +304,22 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _one_line_warnings() -> None:
+    """Warnings as the command line's other messages: one line, ``difstar: warning:``,
+    without the library's source line (which says nothing to a user of the command)."""
+    import warnings
+
+    def one_line(message, category, *_args, **_kwargs):
+        return f"difstar: warning: {' '.join(str(message).split())}\n"
+
+    warnings.formatwarning = one_line
+
+
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (argparse's own errors exit 2)."""
     ap = build_parser()
     a = ap.parse_args(argv)
+    _one_line_warnings()
     from difstar._compilation_cache import enable_compilation_cache
 
     enable_compilation_cache()  # compiled programs kept on disk for the next run

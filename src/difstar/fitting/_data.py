@@ -92,11 +92,16 @@ class FitData:
                     read = 1e-3 * np.max(np.abs(img[m]))
             if not (noise.gain > 0):
                 raise FitInputError(f"Noise.gain must be > 0; got {noise.gain}.")
-            var = read**2 + np.maximum(img, 0) / noise.gain + (noise.floor * img) ** 2
+            with np.errstate(over="ignore"):  # values near the float range: said below
+                var = read**2 + np.maximum(img, 0) / noise.gain + (noise.floor * img) ** 2
             sigma = np.sqrt(var)
         sigma = np.broadcast_to(np.asarray(sigma, float), img.shape).copy()
         if np.any(~np.isfinite(sigma[m])) or np.any(sigma[m] <= 0):
-            raise FitInputError("FitData: sigma must be finite and > 0 on every used pixel.")
+            big = "" if not np.max(np.abs(img[m])) > 1e150 else (
+                f" (the data reach {np.max(np.abs(img[m])):.3g}: their noise overflows; "
+                "scale the image to sensible units first)")
+            raise FitInputError("FitData: sigma must be finite and > 0 on every used "
+                                f"pixel{big}.")
         sigma[~m] = 1.0
         if light is not None and not isinstance(light, Light):
             raise FitInputError("FitData: light must be a difstar Light (Light.monochromatic or "

@@ -116,6 +116,13 @@ def _load_capture(d: Mapping, where, manifest_dir, *, source: str = "manifest",
         raise FitInputError(f"{source}: field {where}: the data has no signal above the "
                             f"background (every used pixel is {used[0]:g}); check the file "
                             "and the roi.")
+    # before the noise model, which overflows first
+    big = float(np.max(np.abs(used)))
+    if not 1.0 / MAX_DATA_MAGNITUDE <= big <= MAX_DATA_MAGNITUDE:
+        raise FitInputError(f"{source}: field {where}: values up to {big:.3g} (outside "
+                            f"{1 / MAX_DATA_MAGNITUDE:g} to {MAX_DATA_MAGNITUDE:g}, where the "
+                            "χ² overflows or underflows); rescale the data (and its σ) to "
+                            "counts or another unit near 1.")
     noise = d.get("noise") or {}
     try:
         fd = FitData.from_array(
@@ -126,12 +133,6 @@ def _load_capture(d: Mapping, where, manifest_dir, *, source: str = "manifest",
     except FitInputError as e:
         raise FitInputError(f"{source}: field {where}: "
                             f"{str(e).removeprefix('FitData: ')}") from None
-    big = float(np.max(np.abs(fd.image[fd.mask])))
-    if not 1.0 / MAX_DATA_MAGNITUDE <= big <= MAX_DATA_MAGNITUDE:
-        raise FitInputError(f"{source}: field {where}: values up to {big:.3g} (outside "
-                            f"{1 / MAX_DATA_MAGNITUDE:g} to {MAX_DATA_MAGNITUDE:g}, where the "
-                            "χ² overflows or underflows); rescale the data (and its σ) to "
-                            "counts or another unit near 1.")
     bg = _border_background(fd)
     amp = float(np.max(fd.image[fd.mask])) - bg
     spread = _border_spread(fd, bg)
