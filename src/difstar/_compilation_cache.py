@@ -21,9 +21,12 @@ from pathlib import Path
 #: The environment variable that moves the cache or turns it off (``off``).
 ENV = "DIFSTAR_COMPILATION_CACHE"
 
-#: Programs that compile faster than this (seconds) are not stored: loading them would
-#: save little and the cache would fill with small entries.
-MIN_COMPILE_SECONDS = 0.5
+#: Programs that compile faster than this (seconds) are not stored. 0: every program,
+#: the small ones too. A fit's set-up runs a few hundred small operations outside its
+#: solver (each compiled once per process, 5-30 ms each); stored, they cost the paper
+#: camera's RAW fit 1.9 MB of cache and bring its first step from 9.4 to 7.4 s on a
+#: second run (BENCHMARKS.md, "Whole fits").
+MIN_COMPILE_SECONDS = 0.0
 
 #: The cache's size limit in bytes: JAX drops the least recently used programs beyond it.
 MAX_BYTES = 2 * 1024**3
