@@ -328,6 +328,10 @@ class RawRunner(StageRunner):
         if verbose:
             _log(f"difstar fit: stage {si + 1}: {label}")
             _log(f"{'iter':>6} {'loss':>14} {'step size':>11}  moved most")
+            if not n_solves:  # the silent part of a fit: said once, before it
+                _log("  (the first step traces and compiles the solver's programs: tens of "
+                     "seconds the first time these shapes are fitted on this machine, a "
+                     "few from the compilation cache after)")
         last = [free_parts(model, u)]
 
         def progress(k, loss, size, done, u_k):

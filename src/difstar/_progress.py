@@ -23,10 +23,11 @@ def step_bar(label: str | None, total: int) -> Iterator[Callable[[str], None] | 
 
     bar = tqdm(total=total, desc=label, unit="step", leave=False, file=sys.stderr,
                dynamic_ncols=True)
+    # the first step of a program not yet compiled is the silent part of a run: said
+    bar.set_postfix_str("first step: tracing, compiling or loading the programs")
 
     def update(text: str = "") -> None:
-        if text:
-            bar.set_postfix_str(text, refresh=False)
+        bar.set_postfix_str(text, refresh=False)
         bar.update(1)
         bar.refresh()  # every step drawn: a step takes far longer than drawing it
 
