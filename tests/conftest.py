@@ -33,6 +33,9 @@ def _session_compilation_cache(tmp_path_factory):
     folder = tmp_path_factory.mktemp("jax-compilation-cache")
     os.environ[ENV] = str(folder)
     enable_compilation_cache(folder)
+    # within one process JAX keeps its programs anyway: the tests store only those that
+    # take a while to compile (the command line stores every one, for the next run)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     yield
     os.environ[ENV] = "off"
 
