@@ -26,6 +26,11 @@ class Noise:
     gain: float = 1.0
     floor: float = 0.0
 
+#: the largest |value| a fitted image may hold, and 1 / it the least largest one: its
+#: squares (χ², and the noise model's variance) stay finite and normal in float64
+MAX_DATA_MAGNITUDE = 1e100
+
+
 @dataclasses.dataclass
 class FitData:
     """An image to fit: ``image`` (H, W), ``sigma`` (per pixel, or from ``noise``),
@@ -76,6 +81,12 @@ class FitData:
         if np.count_nonzero(~np.isfinite(img) & m):
             raise FitInputError("FitData: NaN or infinite values in unmasked pixels.")
         img = np.where(m, img, 0.0)
+        big = float(np.max(np.abs(img[m])))  # before the noise model squares them
+        if not 1.0 / MAX_DATA_MAGNITUDE <= big <= MAX_DATA_MAGNITUDE:
+            raise FitInputError(f"FitData: values up to {big:.3g} (outside "
+                                f"{1 / MAX_DATA_MAGNITUDE:g} to {MAX_DATA_MAGNITUDE:g}, where "
+                                "the χ² overflows or underflows); rescale the data (and its "
+                                "σ) to counts or another unit near 1.")
         given = sigma is not None
         if sigma is None:
             noise = noise or Noise()
@@ -92,16 +103,11 @@ class FitData:
                     read = 1e-3 * np.max(np.abs(img[m]))
             if not (noise.gain > 0):
                 raise FitInputError(f"Noise.gain must be > 0; got {noise.gain}.")
-            with np.errstate(over="ignore"):  # values near the float range: said below
-                var = read**2 + np.maximum(img, 0) / noise.gain + (noise.floor * img) ** 2
+            var = read**2 + np.maximum(img, 0) / noise.gain + (noise.floor * img) ** 2
             sigma = np.sqrt(var)
         sigma = np.broadcast_to(np.asarray(sigma, float), img.shape).copy()
         if np.any(~np.isfinite(sigma[m])) or np.any(sigma[m] <= 0):
-            big = "" if not np.max(np.abs(img[m])) > 1e150 else (
-                f" (the data reach {np.max(np.abs(img[m])):.3g}: their noise overflows; "
-                "scale the image to sensible units first)")
-            raise FitInputError("FitData: sigma must be finite and > 0 on every used "
-                                f"pixel{big}.")
+            raise FitInputError("FitData: sigma must be finite and > 0 on every used pixel.")
         sigma[~m] = 1.0
         if light is not None and not isinstance(light, Light):
             raise FitInputError("FitData: light must be a difstar Light (Light.monochromatic or "

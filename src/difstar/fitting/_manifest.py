@@ -116,13 +116,6 @@ def _load_capture(d: Mapping, where, manifest_dir, *, source: str = "manifest",
         raise FitInputError(f"{source}: field {where}: the data has no signal above the "
                             f"background (every used pixel is {used[0]:g}); check the file "
                             "and the roi.")
-    # before the noise model, which overflows first
-    big = float(np.max(np.abs(used)))
-    if not 1.0 / MAX_DATA_MAGNITUDE <= big <= MAX_DATA_MAGNITUDE:
-        raise FitInputError(f"{source}: field {where}: values up to {big:.3g} (outside "
-                            f"{1 / MAX_DATA_MAGNITUDE:g} to {MAX_DATA_MAGNITUDE:g}, where the "
-                            "χ² overflows or underflows); rescale the data (and its σ) to "
-                            "counts or another unit near 1.")
     noise = d.get("noise") or {}
     try:
         fd = FitData.from_array(
@@ -180,10 +173,6 @@ def _border_background(data: FitData) -> float:
         box = np.s_[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
     img, m = data.image[box], m[box]
     return float(np.median(img[_edge(m.shape) & m]))
-
-#: the largest |value| a fitted image may hold, and 1 / it the least largest one: its
-#: squares (χ²) stay finite and normal in float64
-MAX_DATA_MAGNITUDE = 1e100
 
 def _border_spread(data: FitData, background: float) -> float:
     """The scatter of the border's used pixels about ``background`` (1.4826 × their
