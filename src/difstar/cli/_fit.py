@@ -67,6 +67,8 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
 
     written = ["fit_result.json"]
     panels = None
+    # one program for every configuration's capture, not its operations one by one
+    demosaic_once = jax.jit(demosaic, static_argnames=("pattern", "method"))
     pred = fitter.predict(u, full=True)
     cc = model.camera
     rows = []
@@ -115,8 +117,8 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
             if ring.max() < 0.95 and cj.exposure_time >= capl[i].exposure_time:
                 i = j
         c = capl[i]
-        obs_rgb = np.asarray(jax.jit(demosaic, static_argnames=("pattern", "method"))(
-            jnp.asarray(caps[c.name]["zeta"]), cc.pattern, method="bilinear"))
+        obs_rgb = np.asarray(demosaic_once(jnp.asarray(caps[c.name]["zeta"]), cc.pattern,
+                                           method="bilinear"))
         pz = np.asarray(p.zeta[i])
         h, w = pz.shape[-2:]
         r0 = h // 2 + c.base_offset[0]
