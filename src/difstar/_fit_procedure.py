@@ -324,18 +324,20 @@ class RawRunner(StageRunner):
             sigma_from = fitter.predict(u) if st.sigma == "prediction" else None
             data = observed_data(model, self.caps, self.noise, sigma_from)
         args = make_args(model, data, u, hold=hold)
-        n_solves = sum(1 for r in records if "loss_end" in r)
+        # the process's first solve: its first step (tracing, compiling) is said before
+        # it starts and timed when it ends
+        first = not any("loss_end" in r for r in records) and "first_step" not in FIRST_STEP
         if verbose:
             _log(f"difstar fit: stage {si + 1}: {label}")
             _log(f"{'iter':>6} {'loss':>14} {'step size':>11}  moved most")
-            if not n_solves:  # the silent part of a fit: said once, before it
+            if first:
                 _log("  (the first step traces and compiles the solver's programs: tens of "
                      "seconds the first time these shapes are fitted on this machine, a "
                      "few from the compilation cache after)")
         last = [free_parts(model, u)]
 
         def progress(k, loss, size, done, u_k):
-            if k == 1 and not n_solves and "first_step" not in FIRST_STEP:
+            if k == 1 and first:
                 FIRST_STEP["first_step"] = seconds_since_process_start()
                 if verbose and FIRST_STEP["first_step"] is not None:
                     _log(f"difstar fit: first step done {FIRST_STEP['first_step']:.1f} s "
