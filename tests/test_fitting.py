@@ -256,6 +256,42 @@ def test_jwst_manifest_loads_and_model_matches_data_shape():
     assert 0.2 < img.max() / small.image.max() < 5
 
 
+def test_campaign_manifests_find_a_star_anywhere_in_its_window(tmp_path):
+    """The JWST and Spitzer manifests start x0, y0 at the data's brightest pixels
+    (``"auto"``) with bounds ± 3 px about that start, so the same manifest on another
+    star's window, off its centre, starts at that star and not at the window's centre.
+    The star is the real JWST one, cut out of its file 6 columns left and 5 rows off its
+    centre: the start must move by those pixels against the centred cut."""
+    from astropy.io import fits
+
+    src = ROOT.parent / "shared" / "data" / "measured_psf" / "psf_f090w_star0.fits"
+    assert src.is_file(), f"{src} is missing: clone the project beside shared/"
+    with fits.open(src) as h:
+        image, header = np.asarray(h[0].data, float), h[0].header
+    starts = {}
+    for name, (r0, c0) in {"centred": (8, 8), "off": (3, 14)}.items():
+        fits.PrimaryHDU(image[r0:r0 + 75, c0:c0 + 75], header=header).writeto(
+            tmp_path / f"{name}.fits")
+        manifest = tmp_path / f"{name}.json"
+        manifest.write_text(json.dumps({
+            "extends": str(ROOT / "fit" / "jwst-nircam" / "manifest.json"),
+            "data": {"path": str(tmp_path / f"{name}.fits"),
+                     "noise": {"read": None, "gain": 1.0, "floor": 0.0}}}))
+        model, _, _ = load_manifest(manifest)
+        for q in ("x0", "y0"):
+            p = model.params[q]
+            assert p.free and p.bounds == pytest.approx((p.value - 3, p.value + 3))
+        starts[name] = (model.params["x0"].value, model.params["y0"].value)
+    assert abs(starts["centred"][0]) < 1 and abs(starts["centred"][1]) < 1
+    # 6 columns further left; 5 rows further from the centre (y's sign: the FITS rows)
+    assert starts["off"][0] - starts["centred"][0] == pytest.approx(-6, abs=0.3)
+    assert abs(starts["off"][1] - starts["centred"][1]) == pytest.approx(5, abs=0.3)
+    for campaign in ("jwst-nircam", "spitzer-irac"):
+        spec = json.loads((ROOT / "fit" / campaign / "manifest.json").read_text())["params"]
+        assert spec["x0"] == spec["y0"] == {"value": "auto", "free": True,
+                                            "bounds_about": [-3, 3]}
+
+
 def test_jwst_model_mirrored_is_the_mirror_image():
     """An exact symmetry, not the code's own output: the JWST pupil is mirror-symmetric
     about its vertical axis, so the campaign's model (with a wavefront and its
