@@ -175,6 +175,16 @@ BAD_SCENE = [
      ["scene/exposure_time", "too large"]),
     ("negative phi0", lambda d: d["camera"]["sensor"].update(phi0=[0.1, -0.1, 0.1]),
      ["camera/sensor/phi0/1"]),
+    # a Δz beyond the exit pupil's distance: the planner saw a small (negative) defocus
+    # phase and rendered the in-focus image without a word
+    ("defocus 1 m", lambda d: d["camera"]["lens"].update(defocus=1.0),
+     ["camera.lens.defocus", "exit pupil", "|defocus| <"]),
+    ("defocus -1 m", lambda d: d["camera"]["lens"].update(defocus=-1.0),
+     ["camera.lens.defocus", "|defocus| <"]),
+    # the DNG stores the colour matrix's inverse: NumPy's bare "Singular matrix" before
+    ("singular colour matrix", lambda d: d["camera"]["sensor"].update(
+        colour_matrix=[[1, 0, 0], [2, 0, 0], [0, 0, 1]]),
+     ["camera.sensor.colour_matrix", "singular", "invertible"]),
 ]
 
 

@@ -276,6 +276,26 @@ def check_obstruction(pupil, field: str = "camera.lens.pupil") -> None:
         )
 
 
+#: the largest condition number of a colour matrix (camera RGB → linear sRGB): the DNG
+#: writer stores its inverse (XYZ → camera RGB), which a reader then inverts again
+MAX_COLOUR_MATRIX_CONDITION = 1e8
+
+
+def check_colour_matrix(matrix, field: str) -> None:
+    """A concrete colour matrix that can be inverted: its rows independent (condition
+    number at most :data:`MAX_COLOUR_MATRIX_CONDITION`). Traced values pass through."""
+    m = _concrete_array(matrix)
+    if m is None or m.shape != (3, 3):
+        return
+    cond = float(np.linalg.cond(np.asarray(m, float)))
+    if not cond <= MAX_COLOUR_MATRIX_CONDITION:
+        raise InputError(
+            f"{field}: the matrix is singular or nearly so (condition number "
+            f"{_fmt(cond)}): a RAW file (DNG) stores its inverse, and its rows must be "
+            "independent; give an invertible 3 x 3 matrix (camera RGB to linear sRGB), "
+            "e.g. the identity [[1, 0, 0], [0, 1, 0], [0, 0, 1]].")
+
+
 def check_camera_scene(camera, scene, *, where: str = "") -> None:
     """Physical consistency of concrete camera and scene values, naming the field:
     finite values, positive where they must be, the object beyond what the lens can
@@ -306,6 +326,7 @@ def check_camera_scene(camera, scene, *, where: str = "") -> None:
     check_array(sen.response.knee, f"{p}camera.sensor.response.knee", gt=0)
     check_array(sen.white_balance, f"{p}camera.sensor.white_balance", gt=0)
     check_array(sen.colour_matrix, f"{p}camera.sensor.colour_matrix")
+    check_colour_matrix(sen.colour_matrix, f"{p}camera.sensor.colour_matrix")
     check_array(scene.object_distance, f"{p}scene.object_distance", gt=0, fix="metres")
     check_array(scene.exposure_time, f"{p}scene.exposure_time", gt=0, fix="seconds")
     check_array(scene.background, f"{p}scene.background", ge=0)
@@ -335,6 +356,33 @@ def check_camera_scene(camera, scene, *, where: str = "") -> None:
                        focus_distance=float(rf), principal_separation=float(zp))
     except ValueError as exc:
         raise InputError(f"{p}{exc}") from None
+    check_defocus_override(lens, float(f), float(rf), float(zp), where=p)
+
+
+def check_defocus_override(lens, f: float, rf: float, zp: float, *, where: str = "") -> None:
+    """The lens's Δz override (``lens.defocus``, concrete) within ± the exit pupil's
+    distance to the sensor z_R: beyond it the object's in-focus image would lie at or
+    behind the exit pupil, where no converging beam forms the defocused image (the
+    defocus phase's sign and the magnification turn over; the grid planner saw a small
+    phase and computed an in-focus image). ``f``, ``rf``, ``zp``: the focal length,
+    focus distance and principal-plane separation (metres), as
+    :func:`difstar._geometry.camera_geometry` takes them (NumPy here, no traced op)."""
+    dz = None if lens.defocus is None else _concrete_array(lens.defocus)
+    mp = _concrete_array(lens.pupil_magnification)
+    if dz is None or mp is None or dz.ndim or mp.ndim:
+        return
+    if math.isinf(rf):
+        extension = 0.0
+    else:  # paper Eq. 6 for the lens extension, as camera_geometry solves it
+        big_l = rf - zp
+        extension = 0.5 * (big_l - math.sqrt(max(big_l * big_l - 4.0 * f * big_l, 0.0))) - f
+    z_r = f * float(mp) + extension
+    if not abs(float(dz)) < z_r:
+        raise InputError(
+            f"{where}camera.lens.defocus = {_fmt(float(dz))} m puts the object's in-focus "
+            f"image at or behind the exit pupil, which lies {_fmt(z_r)} m from the sensor; "
+            f"give |defocus| < {_fmt(z_r)} m (the sensor's distance from the in-focus "
+            "plane, positive behind it), or null to derive it from the focus.")
 
 
 # ------------------------------------------------------------------ sizes, memory
