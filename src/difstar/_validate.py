@@ -140,6 +140,8 @@ def check_psf_inputs(*, wavelength=None, z_image=None, pixel_pitch=None, defocus
         a = _concrete_array(v)
         if a is None:
             continue
+        if a.size == 0:
+            raise InputError(f"{where}: {name} is empty; give a number ({fix}).")
         for x in a.ravel():
             check_number(x, f"{where}: {name}", fix=fix, **lim)
     z, dz = _concrete_array(z_image), _concrete_array(defocus)
@@ -148,7 +150,7 @@ def check_psf_inputs(*, wavelength=None, z_image=None, pixel_pitch=None, defocus
             raise InputError(
                 f"{where}: defocus = {_fmt(np.max(dz))} m puts the in-focus image at or "
                 f"behind the exit pupil (z_image = {_fmt(np.min(z))} m); give "
-                f"|defocus| < z_image."
+                f"defocus < z_image (positive: the sensor behind the in-focus plane)."
             )
 
 
@@ -360,9 +362,9 @@ def check_camera_scene(camera, scene, *, where: str = "") -> None:
 
 
 def check_defocus_override(lens, f: float, rf: float, zp: float, *, where: str = "") -> None:
-    """The lens's Δz override (``lens.defocus``, concrete) within ± the exit pupil's
-    distance to the sensor z_R: beyond it the object's in-focus image would lie at or
-    behind the exit pupil, where no converging beam forms the defocused image (the
+    """The lens's Δz override (``lens.defocus``, concrete) below the exit pupil's
+    distance to the sensor z_R: at or beyond it the object's in-focus image would lie at
+    or behind the exit pupil, where no converging beam forms the defocused image (the
     defocus phase's sign and the magnification turn over; the grid planner saw a small
     phase and computed an in-focus image). ``f``, ``rf``, ``zp``: the focal length,
     focus distance and principal-plane separation (metres), as
@@ -377,11 +379,11 @@ def check_defocus_override(lens, f: float, rf: float, zp: float, *, where: str =
         big_l = rf - zp
         extension = 0.5 * (big_l - math.sqrt(max(big_l * big_l - 4.0 * f * big_l, 0.0))) - f
     z_r = f * float(mp) + extension
-    if not abs(float(dz)) < z_r:
+    if not float(dz) < z_r:
         raise InputError(
             f"{where}camera.lens.defocus = {_fmt(float(dz))} m puts the object's in-focus "
             f"image at or behind the exit pupil, which lies {_fmt(z_r)} m from the sensor; "
-            f"give |defocus| < {_fmt(z_r)} m (the sensor's distance from the in-focus "
+            f"give defocus < {_fmt(z_r)} m (the sensor's distance from the in-focus "
             "plane, positive behind it), or null to derive it from the focus.")
 
 
