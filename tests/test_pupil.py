@@ -93,6 +93,35 @@ def test_bad_pupils_are_clear_errors():
         difstar.Polygon(star)  # a pentagram: self-intersecting
 
 
+def test_vertices_that_are_not_numbers_are_a_clear_error():
+    with pytest.raises(ValueError, match="Polygon.vertices must be an .n, 2. array of numbers"):
+        difstar.Polygon("abc")
+    # the message of difstar.psf, or the type checker's that the tests run under: both
+    # name the parameter
+    with pytest.raises(TypeError, match="pupil"):
+        difstar.psf(None, wavelength=530e-9, z_image=0.05, pixel_pitch=3.9e-6, shape=(8, 8))
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_rotation_of_many_turns_keeps_the_polygon(dtype):
+    """A rotation of many turns is the same polygon: its exact area (n/2) r² sin(2π/n)
+    whatever the turns (1e12 rad in float32 gave every vertex one angle: zero area),
+    and in float64 the vertices of 0.3 rad plus 10⁶ whole turns equal those of 0.3 rad."""
+    from difstar.pupils._polygons import regular_polygon_vertices
+
+    r, n, cell = 1.0, 7, 0.05
+    x, y = _grid(64, cell)
+    exact = 0.5 * n * r**2 * np.sin(2 * np.pi / n)
+    for rot in (1e12, -3.7e5, 40.0):
+        pup = difstar.RegularPolygon(n, jnp.asarray(r, dtype), jnp.asarray(rot, dtype))
+        area = float(jnp.sum(pup.coverage(x, y, cell))) * cell**2
+        assert area == pytest.approx(exact, rel=1e-5 if dtype == "float32" else 1e-12)
+    if dtype == "float64":
+        a = regular_polygon_vertices(n, 1.0, jnp.asarray(0.3, "float64"))
+        b = regular_polygon_vertices(n, 1.0, jnp.asarray(0.3 + 2e6 * np.pi, "float64"))
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), atol=1e-9)
+
+
 def test_nonconvex_polygon_area_exact():
     # an L shape, area 3, placed off-grid; Green's-theorem coverage is exact for it too
     v = np.array([[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]], float) - 0.937

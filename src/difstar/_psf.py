@@ -325,6 +325,11 @@ def psf(
             :class:`SamplingError`.
     """
     del check
+    if not isinstance(pupil, AbstractPupil):
+        raise TypeError(f"difstar.psf: pupil must be a difstar pupil (e.g. "
+                        f"difstar.RegularPolygon(7, 1e-3), difstar.Circle(1e-3), "
+                        f"difstar.Polygon(vertices), or a builder of difstar.pupils); got "
+                        f"{type(pupil).__name__}.")
     if oversample is not None and not (isinstance(oversample, (int, np.integer))
                                        and oversample >= 1):
         raise ValueError(f"oversample must be an integer >= 1; got {oversample!r}.")

@@ -29,7 +29,14 @@ class Polygon(AbstractPupil):
     vertices: Float[Array, "n 2"]
 
     def __init__(self, vertices):
-        v = jnp.asarray(vertices)
+        try:
+            v = jnp.asarray(vertices)
+        except (TypeError, ValueError):
+            v = None
+        if v is None or not jnp.issubdtype(v.dtype, jnp.number):
+            raise ValueError("Polygon.vertices must be an (n, 2) array of numbers (x, y in "
+                             f"metres, counter-clockwise); got {type(vertices).__name__} "
+                             f"{str(vertices)[:40]!r}.")
         if v.ndim != 2 or v.shape[1] != 2 or v.shape[0] < 3:
             raise ValueError(
                 f"Polygon.vertices must be an (n, 2) array with n >= 3; got shape {v.shape}."
@@ -67,8 +74,14 @@ class Polygon(AbstractPupil):
         return Polygon(_rigid(self.vertices, _float(rotation), _float(centre)))
 
 def regular_polygon_vertices(n: int, circumradius, rotation) -> Array:
-    """Vertices (n, 2), counter-clockwise, the first at angle ``rotation`` (radians)."""
+    """Vertices (n, 2), counter-clockwise, the first at angle ``rotation`` (radians).
+    A rotation of more than a turn is taken modulo whole turns first (exactly, by
+    ``fmod``): added as it is to the vertices' angles, 1e12 rad in float32 gave every
+    vertex the same angle and a polygon of zero area."""
     k = jnp.arange(n)
+    rotation = jnp.asarray(rotation)
+    turns = jnp.remainder(rotation + math.pi, 2 * math.pi) - math.pi
+    rotation = jnp.where(jnp.abs(rotation) > 2 * math.pi, turns, rotation)
     theta = rotation + 2 * math.pi * k / n
     return jnp.stack([circumradius * jnp.cos(theta), circumradius * jnp.sin(theta)], axis=-1)
 
