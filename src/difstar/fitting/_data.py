@@ -26,6 +26,87 @@ class Noise:
     gain: float = 1.0
     floor: float = 0.0
 
+    def __post_init__(self):
+        for name in ("read", "gain", "floor"):
+            v = getattr(self, name)
+            if v is None and name == "read":
+                continue
+            try:
+                x = float(v)
+            except (TypeError, ValueError):
+                raise FitInputError(f"Noise.{name} must be a number; got {v!r}.") from None
+            if name == "gain":  # inf: no shot noise (as noise_from_residuals may find)
+                if not x > 0:
+                    raise FitInputError(f"Noise.gain must be a number > 0 (inf: no shot "
+                                        f"noise); got {v!r}.")
+            elif not (math.isfinite(x) and x >= 0):
+                raise FitInputError(f"Noise.{name} must be a finite number >= 0; got {v!r}.")
+
+def _number(value, field: str, need: str, ok=lambda x: True) -> float:
+    """``value`` as a finite float for which ``ok`` holds, else a :class:`FitInputError`
+    naming ``field`` of :meth:`FitData.from_array` and what it needs (``need``)."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = math.nan
+    if not (math.isfinite(x) and ok(x)):
+        raise FitInputError(f"FitData: {field} must be a finite number {need}; got "
+                            f"{value!r}.")
+    return x
+
+
+def _image(image) -> np.ndarray:
+    """The image as a 2-D float array of at least 4 × 4 real numbers, else an error
+    saying what it is (text, complex values, a mask, a ragged list, a cube)."""
+    try:
+        a = np.asarray(image)
+    except ValueError:  # a ragged list
+        raise FitInputError("FitData: the image must be a 2-D array of numbers; got a "
+                            "ragged list (rows of different lengths).") from None
+    if a.dtype.kind not in "iuf":
+        what = {"b": "True/False values (a mask? give it as mask=)",
+                "c": "complex numbers (give the intensity, e.g. abs(field)**2)"}.get(
+                    a.dtype.kind, f"values of type {a.dtype}")
+        raise FitInputError(f"FitData: the image must be real numbers; got {what}.")
+    if a.ndim != 2 or min(a.shape) < 4:
+        raise FitInputError(f"FitData: the image must be 2-D, at least 4 × 4; got shape "
+                            f"{a.shape}.")
+    return a.astype(float)
+
+
+def _like_image(value, img: np.ndarray, field: str, dtype) -> np.ndarray:
+    """``value`` as an array of the image's shape (before any roi), else an error
+    naming ``field``."""
+    try:
+        a = np.asarray(value, dtype)
+    except (TypeError, ValueError):
+        raise FitInputError(f"FitData: {field} must be an array of numbers shaped like "
+                            f"the image {img.shape}.") from None
+    if a.shape != img.shape:
+        raise FitInputError(f"FitData: {field} has shape {a.shape}; give one of the "
+                            f"image's shape {img.shape} (before any roi).")
+    return a
+
+
+def _roi(roi, shape) -> tuple[int, int, int, int]:
+    """``roi`` = (row0, row1, col0, col1): whole numbers inside ``shape`` with at least
+    4 × 4 pixels between them, else an error saying which."""
+    try:
+        vals = [float(v) for v in roi]
+    except (TypeError, ValueError):
+        vals = []
+    h, w = shape
+    if len(vals) != 4 or not all(math.isfinite(v) and v == int(v) for v in vals):
+        raise FitInputError(f"FitData: roi must be 4 whole numbers (row0, row1, col0, "
+                            f"col1); got {roi!r}.")
+    r0, r1, c0, c1 = (int(v) for v in vals)
+    if not (0 <= r0 and r0 + 4 <= r1 <= h and 0 <= c0 and c0 + 4 <= c1 <= w):
+        raise FitInputError(f"FitData: roi {(r0, r1, c0, c1)} must lie inside the "
+                            f"{h} × {w} image, at least 4 × 4: 0 ≤ row0, row0 + 4 ≤ row1 ≤ "
+                            f"{h}, 0 ≤ col0, col0 + 4 ≤ col1 ≤ {w}.")
+    return r0, r1, c0, c1
+
+
 #: the largest |value| a fitted image may hold, and 1 / it the least largest one: its
 #: squares (χ², and the noise model's variance) stay finite and normal in float64
 MAX_DATA_MAGNITUDE = 1e100
@@ -57,31 +138,33 @@ class FitData:
     def from_array(image, *, sigma=None, noise: Noise | None = None, mask=None, roi=None,
                    pixel_scale=None, path=None, exposure=1.0, saturation=None,
                    light=None) -> FitData:
-        exposure = float(exposure)
-        if not (math.isfinite(exposure) and exposure > 0):
-            raise FitInputError(f"FitData: exposure must be a finite number > 0 (a relative "
-                                f"exposure time); got {exposure}.")
-        img = np.asarray(image, dtype=float)
-        if img.ndim != 2 or min(img.shape) < 4:
-            raise FitInputError(f"FitData: the image must be 2-D, at least 4 × 4; got shape "
-                                f"{img.shape}.")
-        m = np.isfinite(img) if mask is None else (np.asarray(mask, bool) & np.isfinite(img))
+        exposure = _number(exposure, "exposure", "> 0 (a relative exposure time)",
+                           lambda x: x > 0)
+        img = _image(image)
+        m = np.isfinite(img) if mask is None else (_like_image(mask, img, "mask", bool)
+                                                   & np.isfinite(img))
         if saturation is not None:
-            if not math.isfinite(float(saturation)):
-                raise FitInputError(f"FitData: saturation must be a finite level; got "
-                                    f"{saturation}.")
-            m = m & ~(np.where(np.isfinite(img), img, 0.0) >= float(saturation))
+            level = _number(saturation, "saturation", "(the level the sensor clips at)")
+            m = m & ~(np.where(np.isfinite(img), img, 0.0) >= level)
+        if pixel_scale is not None:
+            pixel_scale = _number(pixel_scale, "pixel_scale", "> 0 (arcsec per pixel)",
+                                  lambda x: x > 0)
+        if sigma is not None and np.ndim(sigma) != 0:
+            sigma = _like_image(sigma, img, "sigma", float)
         if roi is not None:
-            r0, r1, c0, c1 = (int(v) for v in roi)
+            r0, r1, c0, c1 = _roi(roi, img.shape)
             img, m = img[r0:r1, c0:c1], m[r0:r1, c0:c1]
             if sigma is not None and np.ndim(sigma) == 2:
-                sigma = np.asarray(sigma)[r0:r1, c0:c1]
+                sigma = sigma[r0:r1, c0:c1]
         if not m.any():
             raise FitInputError("FitData: no valid pixel (all NaN, infinite or masked).")
         if np.count_nonzero(~np.isfinite(img) & m):
             raise FitInputError("FitData: NaN or infinite values in unmasked pixels.")
         img = np.where(m, img, 0.0)
         big = float(np.max(np.abs(img[m])))  # before the noise model squares them
+        if big == 0:
+            raise FitInputError("FitData: the image is 0 on every used pixel: nothing to "
+                                "fit (check the file, the mask, the roi and the saturation).")
         if not 1.0 / MAX_DATA_MAGNITUDE <= big <= MAX_DATA_MAGNITUDE:
             raise FitInputError(f"FitData: values up to {big:.3g} (outside "
                                 f"{1 / MAX_DATA_MAGNITUDE:g} to {MAX_DATA_MAGNITUDE:g}, where "
@@ -101,8 +184,6 @@ class FitData:
                 read = 1.4826 * np.median(np.abs(v - np.median(v)))
                 if not read > 0:
                     read = 1e-3 * np.max(np.abs(img[m]))
-            if not (noise.gain > 0):
-                raise FitInputError(f"Noise.gain must be > 0; got {noise.gain}.")
             var = read**2 + np.maximum(img, 0) / noise.gain + (noise.floor * img) ** 2
             sigma = np.sqrt(var)
         sigma = np.broadcast_to(np.asarray(sigma, float), img.shape).copy()
