@@ -360,9 +360,35 @@ def psf(
                 f"at most {MAX_EXACT_EDGES}; make the plan with difstar.plan_psf for this "
                 "pupil (it samples the pupil instead).")
         check_memory_of(plan, (h, w), n_lam, edges, float(pixel_pitch))
+        _check_plan_period(plan, pupil, (h, w), float(pixel_pitch), z_image, defocus)
     lam, wts = _wavelengths_and_weights(wavelength, weights)
     return _evaluate_all(pupil, lam, wts, z_image, defocus, wavefront, plan=plan,
                          shape=(h, w), pixel_pitch=float(pixel_pitch), scaling=scaling)
+
+
+def _check_plan_period(plan: PSFPlan, pupil, shape, pixel_pitch: float, z_image,
+                       defocus) -> None:
+    """A plan given to :func:`psf` whose period is shorter than the window plus the
+    defocus blur (where the pupil's size, z_image and Δz are concrete) refused: the
+    field is periodic with the plan's period, so a wider window (or blur) wraps onto
+    itself, silently. The plan's own rule adds a guard band on top (a plan made for a
+    smaller window may still fall short of the accuracy it was made for)."""
+    if plan.method == "exact":
+        return
+    extent = max(shape) * pixel_pitch
+    vals = _concrete_all(pupil.max_radius(), z_image, defocus)
+    blur = 0.0
+    if vals is not None and plan.use_defocus:
+        r, z_r, dz = float(np.max(vals[0])), float(np.min(vals[1])), vals[2].ravel()
+        # the widest blur of the Δz given (z_r > Δz: checked where the plan was made)
+        blur = max(2 * r * abs(d) / abs(z_r - d) if z_r != d else math.inf for d in dz)
+    if plan.period < (extent + blur) * (1 - 1e-9):
+        raise InputError(
+            f"difstar.psf: the plan's period ({plan.period:.4g} m) is shorter than this "
+            f"window ({max(shape)} px of {pixel_pitch:.4g} m = {extent:.4g} m)"
+            + (f" and its defocus blur ({blur:.4g} m)" if blur else "")
+            + ": the PSF would wrap onto itself. Make the plan for this window: "
+            f"difstar.plan_psf(..., shape={tuple(shape)}, pixel_pitch={pixel_pitch:.4g}).")
 
 
 def _wavelengths_and_weights(wavelength, weights, xp=jnp):
