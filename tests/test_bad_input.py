@@ -598,6 +598,12 @@ def test_fit_refuses_what_predict_refuses(work, capsys):
         v.pop("bounds", None)
     p = write_text(work / "m.json", json.dumps(m))
     refused(["fit", p], capsys, work, "field parameters", "no parameter is free")
+    # a Δz bound past the exit pupil (0.059 m from the sensor here): predict refuses
+    # such a lens.defocus, and the fit would have searched cameras that cannot be
+    m = copy.deepcopy(man)
+    m["parameters"]["defocus/defocused"]["bounds"] = [0.003, 0.2]
+    p = write_text(work / "m.json", json.dumps(m))
+    refused(["fit", p], capsys, work, "parameters/defocus/defocused/bounds/1", "exit pupil")
     m = copy.deepcopy(man)
     m["captures"][2]["exposure_time"] = "__NaN__"
     p = write_text(work / "m.json", json.dumps(m).replace('"__NaN__"', "NaN"))

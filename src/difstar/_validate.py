@@ -361,6 +361,19 @@ def check_camera_scene(camera, scene, *, where: str = "") -> None:
     check_defocus_override(lens, float(f), float(rf), float(zp), where=p)
 
 
+def exit_pupil_distance(f: float, rf: float, zp: float, mp: float) -> float:
+    """z_R, the exit pupil's distance from the sensor (metres), of a lens of focal length
+    ``f`` focused at ``rf`` from the sensor (inf: at infinity), principal planes ``zp``
+    apart, pupil magnification ``mp``: f·mp + the lens extension of paper Eq. 6, as
+    :func:`difstar._geometry.camera_geometry` solves it (NumPy, no traced op)."""
+    if math.isinf(rf):
+        extension = 0.0
+    else:
+        big_l = rf - zp
+        extension = 0.5 * (big_l - math.sqrt(max(big_l * big_l - 4.0 * f * big_l, 0.0))) - f
+    return f * mp + extension
+
+
 def check_defocus_override(lens, f: float, rf: float, zp: float, *, where: str = "") -> None:
     """The lens's Δz override (``lens.defocus``, concrete) below the exit pupil's
     distance to the sensor z_R: at or beyond it the object's in-focus image would lie at
@@ -373,12 +386,7 @@ def check_defocus_override(lens, f: float, rf: float, zp: float, *, where: str =
     mp = _concrete_array(lens.pupil_magnification)
     if dz is None or mp is None or dz.ndim or mp.ndim:
         return
-    if math.isinf(rf):
-        extension = 0.0
-    else:  # paper Eq. 6 for the lens extension, as camera_geometry solves it
-        big_l = rf - zp
-        extension = 0.5 * (big_l - math.sqrt(max(big_l * big_l - 4.0 * f * big_l, 0.0))) - f
-    z_r = f * float(mp) + extension
+    z_r = exit_pupil_distance(f, rf, zp, float(mp))
     if not float(dz) < z_r:
         raise InputError(
             f"{where}camera.lens.defocus = {_fmt(float(dz))} m puts the object's in-focus "

@@ -17,6 +17,7 @@ from .._detector import halos_of
 from .._fit import param_shape, zernike_index
 from .._geometry import check_geometry
 from .._param import FitInputError
+from .._validate import exit_pupil_distance
 from ._json import check_float32_doc, read_json_extends
 from ._scene import SceneError, check_sensor_spectrum, validate
 
@@ -193,6 +194,7 @@ def manifest_from_dict(doc: dict, *, path: str | Path = "<manifest>") -> Manifes
         params[name] = {"shape": shape, "free": free, "start": start, "lo": lo, "hi": hi,
                         "perturb_scale": scale}
 
+    _check_defocus_bounds(cam, configs, params, src)
     if pupil is None and "circumradius" not in params:
         raise SceneError(f"{src}: field parameters: the blades iris needs circumradius (its "
                          "exit-pupil circumradius, m); give it, or a camera.pupil builder.")
@@ -318,6 +320,29 @@ def _check_geometry(cam: dict, c: dict, where: str) -> None:
                 f"can only focus beyond {near:.4g} m from the sensor; give {key} > "
                 f"{near:.4g}."
             ) from None
+
+
+def _check_defocus_bounds(cam: dict, configs: dict, params: dict, src: str) -> None:
+    """Each configuration's Δz (its start, and its upper bound where it is free) below
+    the exit pupil's distance from the sensor z_R, as ``difstar predict`` asks of a
+    lens's Δz: at z_R or beyond, the in-focus image would lie at or behind the exit
+    pupil (the defocus phase turns over and the fit would search a camera that cannot
+    be)."""
+    for name, cfg in configs.items():
+        p = params.get(f"defocus/{name}")
+        if p is None:
+            continue
+        z_r = exit_pupil_distance(float(cam["focal_length"]), float(cfg["focus_distance"]),
+                                  float(cam["principal_separation"]),
+                                  float(cam["pupil_magnification"]))
+        where = f"{src}: field parameters/defocus/{name}"
+        for what, v in (("start", p["start"]), ("bounds/1", p["hi"] if p["free"] else None)):
+            if v is not None and not float(np.max(v)) < z_r:
+                raise SceneError(
+                    f"{where}/{what}: {float(np.max(v)):.6g} m reaches the exit pupil's "
+                    f"distance from the sensor ({z_r:.6g} m), where the in-focus image "
+                    f"would lie at or behind the exit pupil; give less than {z_r:.6g} m "
+                    "(Δz: the sensor's distance from the in-focus plane, positive behind it).")
 
 
 def _shaped(v, shape: tuple[int, ...], where: str) -> np.ndarray:
