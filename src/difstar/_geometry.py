@@ -14,8 +14,11 @@ All lengths in metres.
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 
 from ._custom_types import Array, Float
 
@@ -48,18 +51,30 @@ class Geometry(eqx.Module):
     working_f_number: Float[Array, ""]
 
 
-def lens_extension(focal_length, focus_distance, principal_separation) -> Array:
+def lens_extension(focal_length, focus_distance, principal_separation,
+                   xp=jnp) -> Array | float:
     """δz solving paper Eq. 6 for a lens focused at ``focus_distance`` from the sensor.
 
     With L = r_f − z_p, s + s' = L and 1/s + 1/s' = 1/f give s' = (L − sqrt(L² − 4 f L))/2
     (the root with the sensor near the focal plane). Requires L > 4 f (closer than that
-    the lens cannot form a real image).
+    the lens cannot form a real image). ``xp``: NumPy for concrete values checked at the
+    boundary (no traced operation).
     """
     f = focal_length
     big_l = focus_distance - principal_separation
     disc = big_l * big_l - 4.0 * f * big_l
-    s_prime = 0.5 * (big_l - jnp.sqrt(jnp.maximum(disc, 0.0)))
+    s_prime = 0.5 * (big_l - xp.sqrt(xp.maximum(disc, 0.0)))
     return s_prime - f
+
+
+def exit_pupil_distance(focal_length: float, focus_distance: float,
+                        principal_separation: float, pupil_magnification: float) -> float:
+    """z_R, the exit pupil's distance from the sensor (metres), for concrete values:
+    f · pupil magnification + the lens extension, as :func:`camera_geometry` has it
+    (``focus_distance`` inf: focused at infinity, no extension)."""
+    ext = 0.0 if math.isinf(focus_distance) else float(
+        lens_extension(focal_length, focus_distance, principal_separation, xp=np))
+    return focal_length * pupil_magnification + ext
 
 
 def camera_geometry(

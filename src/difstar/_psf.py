@@ -14,7 +14,14 @@ import numpy as np
 
 from ._atf import SCALINGS
 from ._custom_types import Array, Float
-from ._psf_engine import DEFAULT_ACCURACY, SAMPLINGS, PSFPlan, SamplingError, evaluate
+from ._psf_engine import (
+    DEFAULT_ACCURACY,
+    SAMPLINGS,
+    PSFPlan,
+    SamplingError,
+    defocus_blur,
+    evaluate,
+)
 from ._psf_engine import plan_psf as plan_window
 from ._pupil import AbstractPupil, Polygon, RegularPolygon
 from ._validate import (
@@ -379,9 +386,8 @@ def _check_plan_period(plan: PSFPlan, pupil, shape, pixel_pitch: float, z_image,
     vals = _concrete_all(pupil.max_radius(), z_image, defocus)
     blur = 0.0
     if vals is not None and plan.use_defocus:
-        r, z_r, dz = float(np.max(vals[0])), float(np.min(vals[1])), vals[2].ravel()
-        # the widest blur of the Δz given (z_r > Δz: checked where the plan was made)
-        blur = max(2 * r * abs(d) / abs(z_r - d) if z_r != d else math.inf for d in dz)
+        r, z_r = float(np.max(vals[0])), float(np.min(vals[1]))
+        blur = max(defocus_blur(r, z_r, float(d)) for d in vals[2].ravel())  # the widest
     if plan.period < (extent + blur) * (1 - 1e-9):
         raise InputError(
             f"difstar.psf: the plan's period ({plan.period:.4g} m) is shorter than this "

@@ -128,6 +128,14 @@ def nodes_for(bandwidth_cycles_per_pixel: float, accuracy: float) -> int:
 # --- planning -------------------------------------------------------------------------------
 
 
+def defocus_blur(radius: float, z_image: float, defocus: float) -> float:
+    """The geometric blur's diameter on the sensor (metres) of a pupil of ``radius``,
+    ``z_image`` from the sensor, with the sensor ``defocus`` behind the in-focus plane:
+    2 r |Δz| / |z_R − Δz|. A plan's period holds the window plus this blur."""
+    return 2 * radius * abs(defocus) / abs(z_image - defocus) if z_image != defocus \
+        else math.inf
+
+
 def _guard(accuracy: float) -> float:
     return max(_MIN_GUARD, _GUARD_A / math.sqrt(accuracy))
 
@@ -181,7 +189,7 @@ def plan_psf(
         raise ValueError(f"difstar.psf: method must be one of {METHODS} or None; got {method!r}.")
     # period: the window, the geometric blur and the guard against the copies
     extent = max(h, w) * p
-    blur = 2 * r * abs(dz) / abs(z_r - dz) if use_defocus else 0.0
+    blur = defocus_blur(r, z_r, dz) if use_defocus else 0.0
     given = period is not None
     if not given:
         period = extent * (1 + _guard(accuracy)) + blur

@@ -31,7 +31,7 @@ import re
 
 import numpy as np
 
-from ._geometry import check_geometry
+from ._geometry import check_geometry, exit_pupil_distance
 
 # the sizes accepted and the error type live below the pupils (which count their edges
 # when built); they are re-exported here (__all__)
@@ -146,12 +146,9 @@ def check_psf_inputs(*, wavelength=None, z_image=None, pixel_pitch=None, defocus
             check_number(x, f"{where}: {name}", fix=fix, **lim)
     z, dz = _concrete_array(z_image), _concrete_array(defocus)
     if z is not None and dz is not None and z_image is not None and defocus is not None:
-        if np.any(z - dz <= 0):
-            raise InputError(
-                f"{where}: defocus = {_fmt(np.max(dz))} m puts the in-focus image at or "
-                f"behind the exit pupil (z_image = {_fmt(np.min(z))} m); give "
-                f"defocus < z_image (positive: the sensor behind the in-focus plane)."
-            )
+        why = defocus_past_exit_pupil(float(np.max(dz)), float(np.min(z)))
+        if why:
+            raise InputError(f"{where}: defocus = {why}.")
 
 
 def refuse_nonfinite_traced(x, name: str):
@@ -361,38 +358,33 @@ def check_camera_scene(camera, scene, *, where: str = "") -> None:
     check_defocus_override(lens, float(f), float(rf), float(zp), where=p)
 
 
-def exit_pupil_distance(f: float, rf: float, zp: float, mp: float) -> float:
-    """z_R, the exit pupil's distance from the sensor (metres), of a lens of focal length
-    ``f`` focused at ``rf`` from the sensor (inf: at infinity), principal planes ``zp``
-    apart, pupil magnification ``mp``: f·mp + the lens extension of paper Eq. 6, as
-    :func:`difstar._geometry.camera_geometry` solves it (NumPy, no traced op)."""
-    if math.isinf(rf):
-        extension = 0.0
-    else:
-        big_l = rf - zp
-        extension = 0.5 * (big_l - math.sqrt(max(big_l * big_l - 4.0 * f * big_l, 0.0))) - f
-    return f * mp + extension
+def defocus_past_exit_pupil(dz: float, z_r: float) -> str | None:
+    """Why a Δz of ``dz`` (metres, positive: the sensor behind the in-focus plane) cannot
+    be, for an exit pupil ``z_r`` from the sensor, or None where it can: at z_R or beyond
+    the in-focus image would lie at or behind the exit pupil, where no converging beam
+    forms the defocused image (the defocus phase's sign and the magnification turn
+    over). The one rule of ``difstar.psf``, a lens's override and a RAW fit's bounds."""
+    if dz < z_r:
+        return None
+    return (f"{_fmt(dz)} m puts the object's in-focus image at or behind the exit pupil, "
+            f"which lies {_fmt(z_r)} m from the sensor; give defocus < {_fmt(z_r)} m (the "
+            "sensor's distance from the in-focus plane, positive behind it)")
 
 
 def check_defocus_override(lens, f: float, rf: float, zp: float, *, where: str = "") -> None:
     """The lens's Δz override (``lens.defocus``, concrete) below the exit pupil's
-    distance to the sensor z_R: at or beyond it the object's in-focus image would lie at
-    or behind the exit pupil, where no converging beam forms the defocused image (the
-    defocus phase's sign and the magnification turn over; the grid planner saw a small
-    phase and computed an in-focus image). ``f``, ``rf``, ``zp``: the focal length,
-    focus distance and principal-plane separation (metres), as
-    :func:`difstar._geometry.camera_geometry` takes them (NumPy here, no traced op)."""
+    distance to the sensor (:func:`defocus_past_exit_pupil`; past it, the grid planner
+    saw a small phase and computed an in-focus image). ``f``, ``rf``, ``zp``: the focal
+    length, focus distance and principal-plane separation (metres), as
+    :func:`difstar._geometry.camera_geometry` takes them."""
     dz = None if lens.defocus is None else _concrete_array(lens.defocus)
     mp = _concrete_array(lens.pupil_magnification)
     if dz is None or mp is None or dz.ndim or mp.ndim:
         return
-    z_r = exit_pupil_distance(f, rf, zp, float(mp))
-    if not float(dz) < z_r:
-        raise InputError(
-            f"{where}camera.lens.defocus = {_fmt(float(dz))} m puts the object's in-focus "
-            f"image at or behind the exit pupil, which lies {_fmt(z_r)} m from the sensor; "
-            f"give defocus < {_fmt(z_r)} m (the sensor's distance from the in-focus "
-            "plane, positive behind it), or null to derive it from the focus.")
+    why = defocus_past_exit_pupil(float(dz), exit_pupil_distance(f, rf, zp, float(mp)))
+    if why:
+        raise InputError(f"{where}camera.lens.defocus = {why}, or null to derive it from "
+                         "the focus.")
 
 
 # ------------------------------------------------------------------ sizes, memory

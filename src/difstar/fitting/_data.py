@@ -27,31 +27,24 @@ class Noise:
     floor: float = 0.0
 
     def __post_init__(self):
-        for name in ("read", "gain", "floor"):
-            v = getattr(self, name)
-            if v is None and name == "read":
-                continue
-            try:
-                x = float(v)
-            except (TypeError, ValueError):
-                raise FitInputError(f"Noise.{name} must be a number; got {v!r}.") from None
-            if name == "gain":  # inf: no shot noise (as noise_from_residuals may find)
-                if not x > 0:
-                    raise FitInputError(f"Noise.gain must be a number > 0 (inf: no shot "
-                                        f"noise); got {v!r}.")
-            elif not (math.isfinite(x) and x >= 0):
-                raise FitInputError(f"Noise.{name} must be a finite number >= 0; got {v!r}.")
+        if self.read is not None:
+            _number(self.read, "Noise.read", ">= 0", lambda x: x >= 0)
+        # inf: no shot noise (as noise_from_residuals may find)
+        _number(self.gain, "Noise.gain", "> 0 (inf: no shot noise)", lambda x: x > 0,
+                finite=False)
+        _number(self.floor, "Noise.floor", ">= 0", lambda x: x >= 0)
 
-def _number(value, field: str, need: str, ok=lambda x: True) -> float:
-    """``value`` as a finite float for which ``ok`` holds, else a :class:`FitInputError`
-    naming ``field`` of :meth:`FitData.from_array` and what it needs (``need``)."""
+
+def _number(value, field: str, need: str, ok=lambda x: True, *, finite=True) -> float:
+    """``value`` as a float (``finite``: a finite one; never NaN) for which ``ok`` holds,
+    else a :class:`FitInputError` naming ``field`` and what it needs (``need``)."""
     try:
         x = float(value)
     except (TypeError, ValueError):
         x = math.nan
-    if not (math.isfinite(x) and ok(x)):
-        raise FitInputError(f"FitData: {field} must be a finite number {need}; got "
-                            f"{value!r}.")
+    if math.isnan(x) or (finite and not math.isfinite(x)) or not ok(x):
+        raise FitInputError(f"{field} must be a {'finite ' if finite else ''}number {need}; "
+                            f"got {value!r}.")
     return x
 
 
@@ -138,16 +131,16 @@ class FitData:
     def from_array(image, *, sigma=None, noise: Noise | None = None, mask=None, roi=None,
                    pixel_scale=None, path=None, exposure=1.0, saturation=None,
                    light=None) -> FitData:
-        exposure = _number(exposure, "exposure", "> 0 (a relative exposure time)",
+        exposure = _number(exposure, "FitData: exposure", "> 0 (a relative exposure time)",
                            lambda x: x > 0)
         img = _image(image)
         m = np.isfinite(img) if mask is None else (_like_image(mask, img, "mask", bool)
                                                    & np.isfinite(img))
         if saturation is not None:
-            level = _number(saturation, "saturation", "(the level the sensor clips at)")
+            level = _number(saturation, "FitData: saturation", "(the level the sensor clips at)")
             m = m & ~(np.where(np.isfinite(img), img, 0.0) >= level)
         if pixel_scale is not None:
-            pixel_scale = _number(pixel_scale, "pixel_scale", "> 0 (arcsec per pixel)",
+            pixel_scale = _number(pixel_scale, "FitData: pixel_scale", "> 0 (arcsec per pixel)",
                                   lambda x: x > 0)
         if sigma is not None and np.ndim(sigma) != 0:
             sigma = _like_image(sigma, img, "sigma", float)

@@ -15,9 +15,9 @@ import numpy as np
 
 from .._detector import halos_of
 from .._fit import param_shape, zernike_index
-from .._geometry import check_geometry
+from .._geometry import check_geometry, exit_pupil_distance
 from .._param import FitInputError
-from .._validate import exit_pupil_distance
+from .._validate import defocus_past_exit_pupil
 from ._json import check_float32_doc, read_json_extends
 from ._scene import SceneError, check_sensor_spectrum, validate
 
@@ -324,10 +324,9 @@ def _check_geometry(cam: dict, c: dict, where: str) -> None:
 
 def _check_defocus_bounds(cam: dict, configs: dict, params: dict, src: str) -> None:
     """Each configuration's Δz (its start, and its upper bound where it is free) below
-    the exit pupil's distance from the sensor z_R, as ``difstar predict`` asks of a
-    lens's Δz: at z_R or beyond, the in-focus image would lie at or behind the exit
-    pupil (the defocus phase turns over and the fit would search a camera that cannot
-    be)."""
+    the exit pupil's distance from the sensor, as ``difstar predict`` asks of a lens's
+    Δz (:func:`difstar._validate.defocus_past_exit_pupil`): past it the fit would search
+    cameras that cannot be."""
     for name, cfg in configs.items():
         p = params.get(f"defocus/{name}")
         if p is None:
@@ -337,12 +336,9 @@ def _check_defocus_bounds(cam: dict, configs: dict, params: dict, src: str) -> N
                                   float(cam["pupil_magnification"]))
         where = f"{src}: field parameters/defocus/{name}"
         for what, v in (("start", p["start"]), ("bounds/1", p["hi"] if p["free"] else None)):
-            if v is not None and not float(np.max(v)) < z_r:
-                raise SceneError(
-                    f"{where}/{what}: {float(np.max(v)):.6g} m reaches the exit pupil's "
-                    f"distance from the sensor ({z_r:.6g} m), where the in-focus image "
-                    f"would lie at or behind the exit pupil; give less than {z_r:.6g} m "
-                    "(Δz: the sensor's distance from the in-focus plane, positive behind it).")
+            why = None if v is None else defocus_past_exit_pupil(float(np.max(v)), z_r)
+            if why:
+                raise SceneError(f"{where}/{what}: {why}.")
 
 
 def _shaped(v, shape: tuple[int, ...], where: str) -> np.ndarray:
