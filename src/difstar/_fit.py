@@ -305,11 +305,12 @@ def predict(model: FitModel, x: dict, *, full: bool = False) -> dict:
 
 # ----------------------------------------------------------------------- residuals
 
-def noise_sigma(zeta, *, gain_e_per_dn, read_noise_dn, full_scale_dn):
+def noise_sigma(zeta, *, gain_e_per_dn, read_noise_dn, full_scale_dn, xp=jnp):
     """σ of normalised ζ under the Poisson–Gaussian model: var = ζ/(g·S) + (r/S)²,
-    with S = white − black in DN and g electrons per DN."""
-    z = jnp.maximum(zeta, 0.0)
-    return jnp.sqrt(z / (gain_e_per_dn * full_scale_dn) + (read_noise_dn / full_scale_dn) ** 2)
+    with S = white − black in DN and g electrons per DN. ``xp``: NumPy for the data's
+    own σ at a fit's set-up (no eager JAX operation, each compiled once per process)."""
+    z = xp.maximum(zeta, 0.0)
+    return xp.sqrt(z / (gain_e_per_dn * full_scale_dn) + (read_noise_dn / full_scale_dn) ** 2)
 
 
 def make_residual_fn(model: FitModel, *, jac_batch: int | None = None, mesh=None) -> Callable:
@@ -392,8 +393,9 @@ def make_args(model: FitModel, data: dict, u_ref=None, *, hold: tuple[str, ...] 
     return {"data": data, "active": active, "u_ref": jnp.asarray(u_ref)}
 
 
-def weights(sigma, saturated):
-    return jnp.where(saturated, 0.0, 1.0 / sigma)
+def weights(sigma, saturated, xp=jnp):
+    """1/σ, 0 on the ``saturated`` (masked) pixels."""
+    return xp.where(saturated, 0.0, 1.0 / sigma)
 
 
 # ------------------------------------------------------------------------- solving
@@ -439,8 +441,15 @@ class Fitter:
         # would cost a compile of the chain for nothing
         self._predict_full = eqx.filter_jit(
             lambda u: predict(model, from_unconstrained(model, u), full=True))
+        # the physical values as one compiled program (a fit's set-up and outputs read
+        # them; eagerly, each bound map's operations compile one by one)
+        self._values = eqx.filter_jit(lambda u: from_unconstrained(model, u))
         self._sensor_fn = make_sensor_residual_fn(model)
         self._sensor_lm = LMStepper(self._sensor_fn, method=method, rtol=rtol, atol=atol)
+
+    def values(self, u) -> dict[str, np.ndarray]:
+        """Every parameter's physical value at ``u`` (:func:`from_unconstrained`)."""
+        return {k: np.asarray(v) for k, v in self._values(jnp.asarray(u)).items()}
 
     def residuals(self, u, args) -> np.ndarray:
         return np.asarray(self._flat(u, args))

@@ -35,7 +35,6 @@ import numpy as np
 from difstar._fit import (
     base_name,
     free_parts,
-    from_unconstrained,
     make_args,
     noise_sigma,
     to_unconstrained,
@@ -96,13 +95,13 @@ def observed_data(model, caps: dict, noise: dict, sigma_from: dict | None = None
         fs = np.asarray([caps[n]["full_scale_dn"] for n in names])[:, None, None]
         ref = z if sigma_from is None else np.asarray(sigma_from[cfg.name])
         kw = dict(gain_e_per_dn=noise["gain_e_per_dn"], read_noise_dn=noise["read_noise_dn"],
-                  full_scale_dn=jnp.asarray(fs))
-        sig = noise_sigma(jnp.asarray(ref), **kw)
+                  full_scale_dn=fs.astype(float), xp=np)
+        sig = noise_sigma(ref.astype(float), **kw)
         # Censoring: a pixel whose expected value lies within a few σ of the white level
         # is clipped by its noise more often one way than the other, so its unclipped
         # values are biased low (a 1 % bias in φ0 here). Mask them as well as the clipped.
-        near = np.asarray(ref) >= 1.0 - SATURATION_GUARD * np.asarray(noise_sigma(1.0, **kw))
-        data[cfg.name] = (jnp.asarray(z), weights(sig, jnp.asarray(sat | near)))
+        near = ref >= 1.0 - SATURATION_GUARD * noise_sigma(1.0, **kw)
+        data[cfg.name] = (jnp.asarray(z), jnp.asarray(weights(sig, sat | near, xp=np)))
     return data
 
 
@@ -280,11 +279,11 @@ class RawRunner(StageRunner):
         self.solver = solver
 
     def value(self, state: RawState, name: str):
-        x = np.asarray(from_unconstrained(self.model, state.u)[name])
+        x = self.fitter.values(state.u)[name]
         return float(x) if x.ndim == 0 else x
 
     def moved(self, state: RawState, change) -> RawState:
-        vals = {k: np.asarray(v) for k, v in from_unconstrained(self.model, state.u).items()}
+        vals = self.fitter.values(state.u)
         for q, x in change.items():
             p = self.model.params[q]
             vals[q] = _inside_bounds(p, np.broadcast_to(np.asarray(x, float), p.shape))
@@ -389,7 +388,7 @@ def restart_response_curves(fitter, model, solved, args, solver: dict, *,
         sensor_args = fitter.sensor_args(solved.u, args["data"], ch, images)
         floor = fitter.sensor_loss(solved.u, sensor_args)  # = the loss at solved.u
         for f in factors:
-            vals = {k: np.asarray(v) for k, v in from_unconstrained(model, solved.u).items()}
+            vals = fitter.values(solved.u)
             x = vals[parameter].copy()
             x[ch] = _inside_bounds(spec, x * f)[ch]
             vals[parameter] = x

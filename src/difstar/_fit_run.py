@@ -25,7 +25,6 @@ from difstar._fit import (
     FitModel,
     Fitter,
     camera_scene,
-    from_unconstrained,
     make_args,
     to_unconstrained,
 )
@@ -207,7 +206,7 @@ def photometric_start(fitter, caps, u0):
     spec = model.params.get("phi0")
     if spec is None or not spec.free:
         return u0
-    x = from_unconstrained(model, u0)
+    x = fitter.values(u0)
     # the Fitter's compiled prediction (the restarts and the outputs use it again)
     pred = fitter.linear_images(u0)
     num = np.zeros(3)
@@ -226,12 +225,8 @@ def photometric_start(fitter, caps, u0):
                 den[ch] += np.sum(z[m])
     phi0 = np.where((num > 0) & (den > 0), num / np.maximum(den, 1e-300), x["phi0"])
     phi0 = np.clip(phi0, spec.lo * (1 + 1e-6), spec.hi * (1 - 1e-6))
-    values = {k: np.asarray(x[k]) for k in model.free} | {"phi0": phi0}
+    values = {k: x[k] for k in model.free} | {"phi0": phi0}
     return to_unconstrained(model, values)
-
-
-def _values(model, u) -> dict:
-    return {k: np.asarray(v) for k, v in from_unconstrained(model, u).items()}
 
 
 def exposure_range(fitter, model, u, caps) -> tuple[float, float]:
@@ -277,7 +272,7 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
         args, solved = make_args(model, args["data"], u), None
     cov, se, diag = fitter.covariance(u, args, solved)
     t_cov = time.perf_counter() - t0
-    x = _values(model, u)
+    x = fitter.values(u)
     params = {}
     for name, p in model.params.items():
         d = {"value": x[name].tolist(), "free": p.free, "start": np.asarray(p.value).tolist()}

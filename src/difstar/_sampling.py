@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 
-import jax.numpy as jnp
 import numpy as np
 
 from ._atf import intensity_bandwidth
@@ -77,7 +76,8 @@ def pixel_bandwidth(camera: Camera, scene: Scene, scaling: str = "fresnel") -> f
     the pixels."""
     g = geometry_of(camera, scene)
     return float(intensity_bandwidth(
-        float(camera.lens.pupil.max_radius()), float(jnp.min(camera.sensor.wavelengths)),
+        float(camera.lens.pupil.max_radius()),
+        float(np.min(np.asarray(camera.sensor.wavelengths, float))),
         float(g.z_exit_pupil), float(g.defocus), float(camera.sensor.pixel_pitch), scaling))
 
 
@@ -298,7 +298,7 @@ def choose_grid(
                             oversample=oversample, n=int(n))
     # the paper's method: the whole n × n grid, transformed twice per channel
     g = geometry_of(camera, scene)
-    lam_min = float(jnp.min(camera.sensor.wavelengths))
+    lam_min = float(np.min(np.asarray(camera.sensor.wavelengths, float)))
     m = pupil_window_for(float(camera.lens.pupil.max_radius()), lam_min,
                          float(g.z_exit_pupil), camera.sensor.pixel_pitch, int(n))
     src = source_window_for(ext["object_radius_px"])

@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ._atf import pupil_scale
@@ -49,7 +48,8 @@ def scene_extent(camera: Camera, scene: Scene) -> dict:
     p = camera.sensor.pixel_pitch
     m = abs(float(g.magnification))
     obj = max(
-        (float(jnp.hypot(*s.position)) + float(s.radius)) * m / p for s in scene.sources
+        (float(np.hypot(*np.asarray(s.position, float))) + float(s.radius)) * m / p
+        for s in scene.sources
     )
     r = float(camera.lens.pupil.max_radius())
     blur = 2 * r * abs(float(g.defocus)) / float(g.z_in_focus) / p
@@ -271,7 +271,7 @@ def needs_defocus(camera: Camera, scene: Scene, *, tolerance: float = 1e-2) -> b
     r = float(camera.lens.pupil.max_radius())
     dz = float(g.defocus)
     z_r = float(g.z_exit_pupil)
-    lam = float(jnp.min(camera.sensor.wavelengths))
+    lam = float(np.min(np.asarray(camera.sensor.wavelengths, float)))
     return math.pi * r * r * abs(dz) / (lam * z_r * (z_r - dz)) > tolerance
 
 
