@@ -19,11 +19,6 @@ os.environ["DIFSTAR_COMPILATION_CACHE"] = "off"
 
 jax.config.update("jax_enable_x64", True)
 
-# the command line's compiler flags (difstar._compiler_flags), before the first computation
-from difstar._compiler_flags import use_quick_compile_flags  # noqa: E402
-
-use_quick_compile_flags()
-
 
 @pytest.fixture(autouse=True, scope="session")
 def _session_compilation_cache(tmp_path_factory):

@@ -151,7 +151,6 @@ from ._metrics import (
 from ._otf import mtf as mtf
 from ._otf import otf as otf
 from ._compilation_cache import enable_compilation_cache as enable_compilation_cache
-from ._compiler_flags import use_quick_compile_flags as use_quick_compile_flags
 from ._psf import plan_psf as plan_psf
 from ._psf import psf as psf
 from ._psf_engine import PSFPlan as PSFPlan

@@ -321,9 +321,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     _one_line_warnings()
     from difstar._compilation_cache import enable_compilation_cache
-    from difstar._compiler_flags import use_quick_compile_flags
 
-    use_quick_compile_flags()  # before the first computation starts XLA's CPU backend
     enable_compilation_cache()  # compiled programs kept on disk for the next run
     if a.x64:
         import jax
