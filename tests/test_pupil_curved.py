@@ -183,10 +183,7 @@ def test_jit_equals_no_jit():
         return CurvedIris(9, R, c, radial=rad, rotation=0.05).coverage(x, y, 2.3 * R / 64)
 
     rad = jnp.linspace(-0.02, 0.02, 9)
-    # a cell's coverage is a cancelling sum of its edge terms: the compiled program (its
-    # operations fused, multiply-adds contracted by XLA's CPU emitters) rounds them
-    # differently from the operations one by one, 5e-13 apart at most here
-    np.testing.assert_allclose(jax.jit(f)(0.7, rad), f(0.7, rad), rtol=0, atol=2e-12)
+    np.testing.assert_allclose(jax.jit(f)(0.7, rad), f(0.7, rad), rtol=0, atol=1e-13)
 
 
 def test_outline_coverage_matches_polygon_coverage():
