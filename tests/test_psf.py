@@ -189,6 +189,38 @@ def test_psf_gradients_match_finite_differences(dz):
         assert float(g) == pytest.approx(float(fd), rel=1e-4, abs=1e-12)
 
 
+def test_fft_passes_by_blocks_have_the_gradients(monkeypatch):
+    """The FFT passes a few rows at a time (FFT_BLOCK_BYTES so small that each block holds
+    8 rows, the last padded, as on large windows): jit, grad and jacfwd through them, in
+    Δz (at 0, a hard point), rotation and size, match central differences."""
+    from difstar import _psf_engine
+
+    monkeypatch.setattr(_psf_engine, "FFT_BLOCK_BYTES", 1)
+    plan = difstar.plan_psf(difstar.RegularPolygon(7, 1.1 * R22, 0.0), wavelength=530e-9,
+                            z_image=F, defocus=0.5e-3, pixel_pitch=P, shape=(30, 30),
+                            method="fft")
+    assert plan.pupil_window > 8 and plan.pupil_window % 8 != 0
+
+    def f(dz, rot, r):
+        p = difstar.psf(difstar.RegularPolygon(7, r, rot), wavelength=530e-9, z_image=F,
+                        defocus=dz, pixel_pitch=P, shape=(30, 30), plan=plan)
+        w = jnp.linspace(0.0, 1.0, 30)
+        return jnp.sum(p * (w[:, None] + 2 * w[None, :] ** 2))
+
+    for dz in (0.0, 0.3e-3):
+        args = [jnp.asarray(dz), jnp.asarray(0.2), jnp.asarray(R22)]
+        assert float(jax.jit(f)(*args)) == pytest.approx(float(f(*args)), rel=1e-12)
+        grads = jax.grad(f, argnums=(0, 1, 2))(*args)
+        forward = jax.jacfwd(f, argnums=(0, 1, 2))(*args)
+        for i, eps in enumerate((1e-6, 1e-6, 1e-9)):
+            hi, lo = list(args), list(args)
+            hi[i], lo[i] = hi[i] + eps, lo[i] - eps
+            fd = float((f(*hi) - f(*lo)) / (2 * eps))
+            assert np.isfinite(float(grads[i]))
+            assert float(grads[i]) == pytest.approx(fd, rel=1e-4, abs=1e-12)
+            assert float(forward[i]) == pytest.approx(float(grads[i]), rel=1e-10, abs=1e-14)
+
+
 def test_vertex_gradient_finite_on_grid_line():
     # A vertex placed exactly on a frequency-grid line (x = 0 column).
     n = 32
