@@ -29,6 +29,7 @@ from ._sampling_rules import (
     needs_defocus,
     pupil_window_for,
     scene_extent,
+    shortest_wavelength,
     source_window_for,
 )
 from ._validate import (
@@ -76,8 +77,7 @@ def pixel_bandwidth(camera: Camera, scene: Scene, scaling: str = "fresnel") -> f
     the pixels."""
     g = geometry_of(camera, scene)
     return float(intensity_bandwidth(
-        float(camera.lens.pupil.max_radius()),
-        float(np.min(np.asarray(camera.sensor.wavelengths, float))),
+        float(camera.lens.pupil.max_radius()), shortest_wavelength(camera),
         float(g.z_exit_pupil), float(g.defocus), float(camera.sensor.pixel_pitch), scaling))
 
 
@@ -298,7 +298,7 @@ def choose_grid(
                             oversample=oversample, n=int(n))
     # the paper's method: the whole n × n grid, transformed twice per channel
     g = geometry_of(camera, scene)
-    lam_min = float(np.min(np.asarray(camera.sensor.wavelengths, float)))
+    lam_min = shortest_wavelength(camera)
     m = pupil_window_for(float(camera.lens.pupil.max_radius()), lam_min,
                          float(g.z_exit_pupil), camera.sensor.pixel_pitch, int(n))
     src = source_window_for(ext["object_radius_px"])

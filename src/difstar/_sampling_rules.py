@@ -265,13 +265,19 @@ def source_window_for(object_radius_px: float) -> int:
     return 2 * math.ceil(object_radius_px + 1) + 1
 
 
+def shortest_wavelength(camera: Camera) -> float:
+    """The sensor's shortest wavelength in metres (concrete; NumPy, no JAX operation):
+    the one that samples the pupil most finely and spreads the intensity least."""
+    return float(np.min(np.asarray(camera.sensor.wavelengths, float)))
+
+
 def needs_defocus(camera: Camera, scene: Scene, *, tolerance: float = 1e-2) -> bool:
     """Whether the defocus phase is worth computing (peak phase above ``tolerance`` rad)."""
     g = geometry_of(camera, scene)
     r = float(camera.lens.pupil.max_radius())
     dz = float(g.defocus)
     z_r = float(g.z_exit_pupil)
-    lam = float(np.min(np.asarray(camera.sensor.wavelengths, float)))
+    lam = shortest_wavelength(camera)
     return math.pi * r * r * abs(dz) / (lam * z_r * (z_r - dz)) > tolerance
 
 
