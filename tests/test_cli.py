@@ -217,6 +217,49 @@ def test_fit_takes_either_kind_of_manifest(tmp_path, monkeypatch, capsys):
         assert word in err and "captures" in err and "pupil" in err
 
 
+def test_fit_quiet_says_nothing_and_writes_the_same(tmp_path, monkeypatch, capsys):
+    """``difstar fit --quiet`` runs the fit without progress (stderr) or summary (stdout)
+    and writes its folder as without it; without the flag both are shown. The image
+    fitter is handed ``verbose=False`` the same way."""
+    from pathlib import Path
+
+    import difstar.cli._fit as cli_fit
+    import difstar.fitting._run as image_run
+
+    root = Path(__file__).resolve().parents[1]
+    manifest = root / "fit" / "synthetic-paper-camera" / "manifest.json"
+    seen = []
+    result = {"parameters": {"phi0": {"free": True, "value": [1.0], "stderr": [0.1],
+                                      "at_bound": False}},
+              "convergence": {"reduced_chi2": 1.0, "n_residuals": 10, "n_free": 1},
+              "timing_s": {"total": 1.0, "compile": 0.5}}
+
+    def fake_fit(man, **kw):
+        seen.append(kw["verbose"])
+        if kw["verbose"]:
+            cli_fit._log("difstar fit: progress")
+        return result, None, None, None, None
+
+    def fake_outputs(tmp, *a):
+        (tmp / "fit_result.json").write_text("{}")
+        return ["fit_result.json"]
+
+    monkeypatch.setattr(cli_fit, "fit_manifest", fake_fit)
+    monkeypatch.setattr(cli_fit, "write_outputs", fake_outputs)
+    for quiet, out in ((True, tmp_path / "quiet"), (False, tmp_path / "loud")):
+        assert main(["fit", str(manifest), "--out", str(out)] + ["--quiet"] * quiet) == 0
+        said = capsys.readouterr()
+        assert (out / "fit_result.json").exists()
+        assert (said.out == "" and said.err == "") if quiet else ("χ²" in said.out
+                                                                 and "wrote" in said.err)
+    assert seen == [False, True]
+    calls = []
+    monkeypatch.setattr(image_run, "run", lambda *a, **k: calls.append(k))
+    assert main(["fit", str(root / "fit" / "spitzer-irac" / "manifest.json"), "--quiet",
+                 "--out", str(tmp_path / "image")]) == 0
+    assert calls[0]["verbose"] is False
+
+
 def test_warnings_are_one_line(monkeypatch):
     """The command line shows a library warning as its other messages: one line,
     ``difstar: warning:``, with no source line of the library's code (Python's own

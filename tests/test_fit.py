@@ -335,11 +335,15 @@ def test_difstar_fit_runs_end_to_end(tmp_path):
     assert labels[-1] == "response-curve restarts" and len(labels) >= 3
     assert res["timing_s"]["first_step_since_start"] > 0
     assert (out / "table1.md").exists()
-    # a line per solver step, naming the parameter that step moved most
-    assert "moved most" in p.stderr
+    # a line per solver step: iteration, loss, step size, the most time left (from the
+    # steps after the first; 3 steps at most) and the parameter that step moved most
+    assert "moved most" in p.stderr and "time left" in p.stderr
     steps = [ln.split() for ln in p.stderr.splitlines() if ln.strip()[:1].isdigit()]
     free = {k for k, v in res["parameters"].items() if v["free"]}
-    assert steps and any(len(s) >= 4 and s[3] in free for s in steps)
+    assert steps and any(len(s) >= 5 and s[4] in free for s in steps)
+    left = [s[3] for s in steps if len(s) >= 5]
+    assert {"-", "0s"} & set(left) and any(t.startswith("≤") and t.endswith("s")
+                                           for t in left)
 
 
 SHARDED_CHILD = '''

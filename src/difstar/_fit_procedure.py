@@ -326,14 +326,16 @@ class RawRunner(StageRunner):
         # the process's first solve: its first step (tracing, compiling) is said before
         # it starts and timed when it ends
         first = not any("loss_end" in r for r in records) and "first_step" not in FIRST_STEP
+        max_steps = int(solver.get("max_steps", 100) if st.max_steps is None else st.max_steps)
         if verbose:
             _log(f"difstar fit: stage {si + 1}: {label}")
-            _log(f"{'iter':>6} {'loss':>14} {'step size':>11}  moved most")
+            _log(f"{'iter':>6} {'loss':>14} {'step size':>11} {'time left':>10}  moved most")
             if first:
                 _log("  (the first step traces and compiles the solver's programs: tens of "
                      "seconds the first time these shapes are fitted on this machine, a "
                      "few from the compilation cache after)")
         last = [free_parts(model, u)]
+        after_first = [0.0]
 
         def progress(k, loss, size, done, u_k):
             if k == 1 and first:
@@ -345,10 +347,10 @@ class RawRunner(StageRunner):
                 parts = free_parts(model, u_k)
                 name, _ = moved_most(last[0], parts)
                 last[0] = parts
-                _log(f"{k:>6d} {loss:>14.6g} {size:>11.3g}  {name or '-'}"
+                _log(f"{k:>6d} {loss:>14.6g} {size:>11.3g} "
+                     f"{time_left(k, max_steps, done, after_first):>10}  {name or '-'}"
                      + ("  (done)" if done else ""))
 
-        max_steps = int(solver.get("max_steps", 100) if st.max_steps is None else st.max_steps)
         res = fitter.solve(u, args, max_steps=max_steps, ftol=float(solver.get("ftol", 1e-6)),
                            progress=progress)
         records.append({
@@ -360,6 +362,20 @@ class RawRunner(StageRunner):
             _log(f"difstar fit: stage {si + 1} {res.result} after {res.steps} steps, "
                  f"{res.seconds:.1f} s (+ {res.compile_seconds:.1f} s compile)")
         return RawState(res.u, res, data, args)
+
+
+def time_left(k: int, max_steps: int, done: bool, after_first: list) -> str:
+    """The most time a solve may still take after step ``k`` of ``max_steps``, from the
+    mean time of its steps after the first (which compiles): "≤12s" ("-" after the
+    first step, "0s" when done), one word. It stops earlier where its rule is met.
+    ``after_first``: [the clock when step 1 ended], kept by the caller."""
+    now = time.perf_counter()
+    if k == 1:
+        after_first[0] = now
+        return "0s" if done else "-"
+    if done:
+        return "0s"
+    return f"≤{(now - after_first[0]) / (k - 1) * (max_steps - k):.0f}s"
 
 
 def restart_response_curves(fitter, model, solved, args, solver: dict, *,

@@ -18,13 +18,17 @@ from difstar._fit_truth import perturbed_starts
 from difstar.fitting._params import PERTURB  # starts within ± 20 %: one figure for both fitters
 
 
-def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None) -> dict:
+def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None,
+                   verbose: bool = True) -> dict:
     """Fit from ``n_starts`` perturbed starts. With ``devices`` (or ``DIFSTAR_DEVICES``)
     the fits run together, each the code of one fit (``fit_manifest``) with every
     stage's solves of all fits batched and sharded over that many devices
     (:class:`difstar._batch_fits.FitBatcher`), ``chunk`` fits at a time at most (default:
-    as many as fit in memory); without, one after another."""
+    as many as fit in memory); without, one after another. ``verbose``: a line on stderr
+    per finished fit."""
     import os
+
+    log = _log if verbose else (lambda msg: None)
 
     rng = np.random.default_rng(seed)
     t_study = time.perf_counter()
@@ -50,7 +54,7 @@ def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None) -
             res, model, caps, fitter, u = fit_manifest(man, u0=u0, verbose=False, model=model,
                                                        caps=caps, fitter=fitter)
             rows.append(row_of(i, res, t0))
-            _log(_row_text(i, rows[-1]))
+            log(_row_text(i, rows[-1]))
     else:
         init_distributed()
         n_dev = device_count(devices)
@@ -59,7 +63,7 @@ def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None) -
                         atol=man.solver["atol"])
         u0s = [to_unconstrained(model, perturbed_starts(man, model, rng))
                for _ in range(n_starts)]
-        _log(f"difstar fit: {n_starts} fits together on {n_dev} device(s); their solves "
+        log(f"difstar fit: {n_starts} fits together on {n_dev} device(s); their solves "
              "run as one batch per stage")
 
         def job(i):
@@ -68,12 +72,12 @@ def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None) -
                 res, *_ = fit_manifest(man, u0=u0s[i], verbose=False, model=model, caps=caps,
                                        fitter=stand_in)
                 row = row_of(i, res, t0)
-                _log(_row_text(i, row))
+                log(_row_text(i, row))
                 return row
             return run
 
         batcher = FitBatcher(fitter, devices=n_dev, chunk=chunk,
-                             progress=lambda m: _log(f"difstar fit: {m}"))
+                             progress=lambda m: log(f"difstar fit: {m}"))
         rows = batcher.run([job(i) for i in range(n_starts)])
         extra = {"devices": n_dev, "chunks": [
             {"fits": p.chunk, "per_device": p.per_device, "item_bytes": p.item_bytes,

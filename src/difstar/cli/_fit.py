@@ -211,7 +211,7 @@ def _cmd_fit_image_manifest(a) -> int:
                          "--robustness N.")
     out = Path(a.out) if a.out else Path(a.manifest).parent / "result"
     try:
-        run_fit_image(a.manifest, out, verbose=True, max_steps=a.max_steps,
+        run_fit_image(a.manifest, out, verbose=not a.quiet, max_steps=a.max_steps,
                       overwrite=a.overwrite)
     except FitInputError as e:
         raise ValueError(f"difstar fit: {e}") from None
@@ -247,21 +247,25 @@ def _cmd_fit(a) -> int:
         out = Path(a.out) if a.out else man.folder / "recovery"
         check_output_free(out, overwrite=a.overwrite, inputs=inputs)
         with output_dir(out, overwrite=a.overwrite, inputs=inputs, command="fit") as tmp:
-            study = recovery_study(man, a.recovery_study, a.seed, devices=a.devices)
+            study = recovery_study(man, a.recovery_study, a.seed, devices=a.devices,
+                                   verbose=not a.quiet)
             table = study_table(study)
             write_json(tmp / "recovery.json", study)
             (tmp / "recovery.md").write_text(table + "\n")
-        print(table)
+        if not a.quiet:
+            print(table)
         return 0 if study["n_pass"] >= math.ceil(0.9 * a.recovery_study) else 1
     out = Path(a.out) if a.out else man.folder / "result"
     check_output_free(out, overwrite=a.overwrite, inputs=inputs)
     with output_dir(out, overwrite=a.overwrite, inputs=inputs, command="fit") as tmp:
-        result, model, caps, fitter, u = fit_manifest(man, devices=devices)
+        result, model, caps, fitter, u = fit_manifest(man, devices=devices,
+                                                      verbose=not a.quiet)
         if not math.isfinite(result["convergence"].get("reduced_chi2", 0.0)):
             raise RuntimeError("the fit's χ² is NaN or infinite; nothing was written")
         files = write_outputs(tmp, result, model, caps, fitter, u, man.noise)
-    _print_summary(result)
-    _log(f"difstar fit: wrote {out}/ ({', '.join(files[:4])}, ...)")
+    if not a.quiet:
+        _print_summary(result)
+        _log(f"difstar fit: wrote {out}/ ({', '.join(files[:4])}, ...)")
     return 0
 
 
@@ -318,6 +322,9 @@ def register(subparsers, name: str) -> None:
                        "devices; for a single fit: share its Jacobian's columns out over N "
                        "devices (default: $DIFSTAR_DEVICES; unset: one device); see "
                        "docs/sharding.md")
+        p.add_argument("--quiet", action="store_true",
+                       help="no progress (stderr) or summary (stdout): only errors; the "
+                       "results are written as without it")
         p.set_defaults(func=_cmd_fit)
     else:
         raise ValueError(f"difstar.cli._fit.register: unknown command {name!r}")
