@@ -54,7 +54,7 @@ def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None,
             res, model, caps, fitter, u = fit_manifest(man, u0=u0, verbose=False, model=model,
                                                        caps=caps, fitter=fitter)
             rows.append(row_of(i, res, t0))
-            log(_row_text(i, rows[-1]))
+            log(_row_text(i, rows[-1]) + fits_left(rows, n_starts))
     else:
         init_distributed()
         n_dev = device_count(devices)
@@ -85,6 +85,17 @@ def recovery_study(man, n_starts: int, seed: int, *, devices=None, chunk=None,
     n_pass = sum(r["comparison"]["all_pass"] for r in rows)
     return {"n_starts": n_starts, "seed": seed, "perturbation": PERTURB, "n_pass": n_pass,
             "seconds": time.perf_counter() - t_study, "rows": rows, **extra}
+
+
+def fits_left(rows: list[dict], n_starts: int) -> str:
+    """", about 40 s left": the fits still to run times the mean time of those done after
+    the first (which compiles; the first's own time while it is the only one); "" after
+    the last."""
+    left = n_starts - len(rows)
+    if left <= 0:
+        return ""
+    done = [r["seconds"] for r in rows[1:]] or [rows[0]["seconds"]]
+    return f", about {left * sum(done) / len(done):.0f} s left"
 
 
 def _row_text(i, row) -> str:
