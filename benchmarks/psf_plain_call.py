@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 LAM = 530e-9
 CROP = (1250, 1250)
@@ -41,10 +40,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     a = ap.parse_args(argv)
     import jax
+    from psf_engine import paper_numpy_psf
 
     import difstar
-    from psf_engine import numpy_paper_psf
-    from references import regular_polygon_vertices
 
     rows = []
     for config in ("focused", "defocused"):
@@ -67,11 +65,7 @@ def main(argv=None) -> int:
         f = jax.jit(lambda p, lm: difstar.psf(p, wavelength=lm, plan=plan, **kw))
         jitted = f(pup, jax.numpy.asarray(lam))
         t_jit = _best(lambda: jax.block_until_ready(f(pup, jax.numpy.asarray(lam))), a.repeats)
-        v = regular_polygon_vertices(pup.n, float(pup.circumradius), float(pup.rotation))
-        t_np = _best(lambda: numpy_paper_psf(v, wavelength=lam, z_image=kw["z_image"],
-                                             defocus=kw["defocus"],
-                                             pixel_pitch=kw["pixel_pitch"], n=3 * CROP[0],
-                                             crop=CROP), 2)
+        t_np = paper_numpy_psf(config, 2, CROP)[0]
         same = float(np.max(np.abs(np.asarray(first) - np.asarray(jitted)))
                      / np.max(np.asarray(jitted)))
         rows.append((config, t_first, t_plain, t_jit, t_np, same))
