@@ -157,7 +157,8 @@ def test_large_defocus_5mm_at_f2_8():
         inside = rad <= frac * r_geo
         assert p[inside].sum() == pytest.approx(inside.sum() * P**2 / (np.pi * r_geo**2),
                                                 abs=0.015)
-    g = jax.grad(lambda d: jnp.sum(f(d)[n // 2, n // 2 : n // 2 + 40]))(jnp.asarray(dz))
+    g = jax.jit(jax.grad(lambda d: jnp.sum(f(d)[n // 2, n // 2 : n // 2 + 40])))(
+        jnp.asarray(dz))
     assert np.isfinite(float(g))
 
 
@@ -220,9 +221,9 @@ def test_closed_form_intensity_gradient_matches_autodiff_and_fd():
     np.testing.assert_allclose(np.asarray(polygon_intensity(w, u, t)),
                                np.asarray(_intensity_plain(w, u, t)), rtol=1e-14)
     g = np.asarray(jax.jit(jax.grad(loss(polygon_intensity)))(w))
-    g_auto = np.asarray(jax.grad(loss(_intensity_plain))(w))
+    g_auto = np.asarray(jax.jit(jax.grad(loss(_intensity_plain)))(w))
     np.testing.assert_allclose(g, g_auto, rtol=1e-10, atol=1e-12 * np.abs(g_auto).max())
-    f = loss(polygon_intensity)
+    f = jax.jit(loss(polygon_intensity))  # the differences: compiled, not op by op
     eps = 1e-6
     for j, c in ((0, 0), (2, 1), (5, 0)):
         e = np.zeros_like(w0)
@@ -353,9 +354,9 @@ def test_polygon_psf_gradient_folded_by_symmetry(shape, centre, q):
     np.testing.assert_allclose(np.asarray(polygon_psf(v, **kw)), np.asarray(plain(v)), rtol=1e-12)
     loss = lambda fn: lambda vv: jnp.sum(weights * jnp.sqrt(fn(vv)))  # noqa: E731
     g = np.asarray(jax.jit(jax.grad(loss(lambda vv: polygon_psf(vv, **kw))))(v))
-    g_auto = np.asarray(jax.grad(loss(plain))(v))
+    g_auto = np.asarray(jax.jit(jax.grad(loss(plain)))(v))
     np.testing.assert_allclose(g, g_auto, rtol=1e-9, atol=1e-12 * np.abs(g_auto).max())
-    f = loss(lambda vv: polygon_psf(vv, **kw))
+    f = jax.jit(loss(lambda vv: polygon_psf(vv, **kw)))  # compiled, not op by op
     eps = 1e-6 * r
     for j, c in ((0, 0), (3, 1)):
         e = np.zeros(v.shape)
@@ -382,7 +383,7 @@ def test_closed_form_gradient_in_float32_matches_float64():
     def grad(dtype):
         uu, tt, ww = u.astype(dtype), t.astype(dtype), jnp.asarray(weights, dtype)
         f = lambda w: jnp.sum(ww * jnp.sqrt(polygon_intensity(w, uu, tt)))  # noqa: E731
-        return np.asarray(jax.grad(f)(jnp.asarray(w0, dtype)), np.float64)
+        return np.asarray(jax.jit(jax.grad(f))(jnp.asarray(w0, dtype)), np.float64)
 
     g32, g64 = grad(np.float32), grad(np.float64)
     assert np.all(np.isfinite(g32))
