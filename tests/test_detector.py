@@ -109,7 +109,7 @@ def test_jit_grad_and_jacfwd_of_the_blurs_values_match_central_differences():
     f = jax.jit(loss)
     assert float(f(v0)) == pytest.approx(float(loss(v0)), rel=1e-12)
     g = jax.jit(jax.grad(loss))(v0)
-    jf = jax.jacfwd(loss)(v0)
+    jf = jax.jit(jax.jacfwd(loss))(v0)
     assert np.all(np.isfinite(np.asarray(g)))
     for i in range(3):
         e = jnp.zeros(3).at[i].set(1e-5)

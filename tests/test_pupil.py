@@ -207,7 +207,8 @@ def test_tiled_coverage_gradient_matches_finite_differences():
     v, x, y, cell, rng = _tiled_case(4)
     g = jnp.asarray(rng.normal(size=(y.shape[0], x.shape[1])))
     f = lambda v, c: jnp.sum(difstar.Polygon(v).tiled_coverage(x * c, y * c, cell * c) * g)
-    gv, gc = jax.grad(f, argnums=(0, 1))(v, 1.0)
+    gv, gc = jax.jit(jax.grad(f, argnums=(0, 1)))(v, 1.0)
+    f = jax.jit(f)  # the differences: compiled, not op by op
     eps = 1e-7
     for i, j in [(0, 0), (3, 1), (11, 0)]:
         dv = jnp.zeros_like(v).at[i, j].set(eps)
@@ -230,6 +231,6 @@ def test_tiled_coverage_gradient_in_float32_on_a_large_grid():
         g = g64.astype(dtype)
         f = lambda p: jnp.sum(difstar.RegularPolygon(7, p[0], p[1]).tiled_coverage(
             x, -x.T, jnp.asarray(cell, dtype)) * g)
-        return np.asarray(jax.grad(f)(jnp.asarray([r, 0.1], dtype)), np.float64)
+        return np.asarray(jax.jit(jax.grad(f))(jnp.asarray([r, 0.1], dtype)), np.float64)
 
     np.testing.assert_allclose(grad(jnp.float32), grad(jnp.float64), rtol=2e-3)
