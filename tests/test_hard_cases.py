@@ -95,7 +95,7 @@ def _check_case(camera, scene, crop, *, accuracy, tol, fft_size=None):
     at least 3× farther off (the comparison can tell orientation). None: no such
     comparison."""
     grid = choose_grid(camera, scene, crop=crop, accuracy=accuracy)
-    pred = simulate(camera, scene, grid)
+    pred = eqx.filter_jit(simulate)(camera, scene, grid)  # compiled, not op by op
     for a in (pred.image, pred.cfa, pred.srgb, pred.psf):
         assert np.all(np.isfinite(np.asarray(a)))
     g = eqx.filter_jit(eqx.filter_grad(lambda cs: _loss(cs[0], cs[1], grid)))((camera, scene))
