@@ -22,15 +22,21 @@ jax.config.update("jax_enable_x64", True)
 
 @pytest.fixture(autouse=True, scope="session")
 def _session_compilation_cache(tmp_path_factory):
-    """JAX's persistent compilation cache in a fresh folder of this test session (one
-    per xdist worker), for the tests and the commands they start: a program compiled
-    once (a fit's stage run again in a repeat or a hop, the same model in another test)
-    is loaded, not compiled again. A loaded program is the program compiled, so no
-    result changes; the folder starts empty, so nothing carries over between sessions.
+    """JAX's persistent compilation cache in a fresh folder of this test session, shared
+    by its xdist workers, for the tests and the commands they start: a program compiled
+    once (a fit's stage run again in a repeat or a hop, the same model in another test or
+    on the other worker) is loaded, not compiled again. JAX locks the folder for each
+    read and write (its size limit makes it use ``filelock``), so the workers may share
+    it. A loaded program is the program compiled, so no result changes; the folder
+    starts empty, so nothing carries over between sessions.
     tests/test_compilation_cache.py checks a run from the cache against one without."""
     from difstar._compilation_cache import ENV, enable_compilation_cache
 
-    folder = tmp_path_factory.mktemp("jax-compilation-cache")
+    base = tmp_path_factory.getbasetemp()
+    # under xdist each worker's base is a folder of the session's own (popen-gw0, ...)
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    folder = shared / "jax-compilation-cache"
+    folder.mkdir(exist_ok=True)
     os.environ[ENV] = str(folder)
     enable_compilation_cache(folder)
     # within one process JAX keeps its programs anyway: the tests store only those that
