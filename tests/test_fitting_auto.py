@@ -56,19 +56,19 @@ def test_with_a_free_rotation_scan_spikes_hop_and_repeat():
     data = _data((41, 41))
     st = auto_stages(model, data)
     assert [next(iter(s)) if len(s) == 1 else s["free"] for s in st] == [
-        ["x0", "y0", "flux", "background"], ["rotation", "flux", "background"], "all",
-        ["rotation"], "all", "hop", "repeat"]
+        ["x0", "y0", "flux", "background"], "all", ["rotation"], "all", "hop", "repeat"]
     r_edge = 20
-    scan = st[1]["scan"]
+    scan = st[1]["scan"]  # before the whole image's stage, the rotation held there
     # the step moves a spike at the window's edge by about a quarter pixel (rounded down
     # to two digits); the range covers the bounds from any start inside them
     arc = scan["step"] * math.pi / 180 * r_edge
     assert 0.2 < arc <= 0.25
     assert scan["half_range"] >= 40 and 2 * scan["half_range"] / scan["step"] < 1000
-    assert st[3]["spikes"]["r_min"] == 10 and st[3]["spikes"]["r_max"] == r_edge
-    assert st[2]["fix"] == ["rotation"] and st[4]["fix"] == ["rotation"]
-    assert st[5]["hop"]["offsets"] == [-2 * scan["step"], 2 * scan["step"]]
-    tol = st[6]["repeat"]["until"]["rotation"]
+    assert st[2]["spikes"]["r_min"] == 10 and st[2]["spikes"]["r_max"] == r_edge
+    assert st[1]["fix"] == ["rotation"] and st[3]["fix"] == ["rotation"]
+    assert st[4]["hop"]["offsets"] == [-2 * scan["step"], 2 * scan["step"]]
+    assert st[4]["hop"]["stages"] == 2 and st[5]["repeat"]["stages"] == 2  # the spikes, all
+    tol = st[5]["repeat"]["until"]["rotation"]
     assert tol * math.pi / 180 * r_edge == pytest.approx(0.004, rel=0.05)
     # ordinary stages: fit's own checks pass them
     _check_fit_inputs(model, [data], st, starts=None, max_steps=100)
@@ -87,7 +87,7 @@ def test_sigma_is_estimated_from_the_residual_only_where_the_data_say_nothing_of
         assert not noise_unknown(known)
     spike = [s for s in auto_stages(_model(), default) if "spikes" in s][0]
     assert spike["noise_from_residuals"] == {"floor": 0.03, "intensity": "data"}
-    assert "noise_from_residuals" not in auto_stages(_model(), _data((41, 41)))[3]
+    assert "noise_from_residuals" not in auto_stages(_model(), _data((41, 41)))[2]
 
 
 def test_fit_refuses_stages_that_are_neither_a_list_nor_auto():

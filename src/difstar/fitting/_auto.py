@@ -57,24 +57,25 @@ def auto_stages(model: ImageModel, data) -> list[dict]:
        halos' fractions that are free)
        on the central (2 core + 1)² pixels, where the spikes weigh little — only where
        the window is larger than that;
-    2. if ``rotation`` is free: a scan of the rotation over its bounds (± 20° where it
-       has none) in steps that move a spike at ``r_edge`` by a quarter pixel (the grid
-       finds the basin the spikes' fine structure makes), with flux and background free,
-       on all pixels;
-    3. everything else free on all pixels (the rotation held, if free);
+    2. everything else free on all pixels, the rotation held; if ``rotation`` is free,
+       first a scan of it over its bounds (± 20° where it has none) in steps that move
+       a spike at ``r_edge`` by a quarter pixel (the grid finds the basin the spikes'
+       fine structure makes), and the rotation held at the scan's best (stage 3 measures
+       it; a solve of the rotation alone right after the scan cost a compiled program of
+       its own and moved no answer);
 
     and if ``rotation`` is free, the rotation measured on its spikes in turn with the rest:
 
-    4. where the data's σ says nothing of the signal's noise (:func:`noise_unknown`),
+    3. where the data's σ says nothing of the signal's noise (:func:`noise_unknown`),
        σ re-estimated from the residual (read noise and gain, and a 3 % floor for the
        model's own mismatch, :data:`MISMATCH_FLOOR`); pixels more than 20 σ off beyond
        the core masked (a neighbour, a cosmic ray); then the rotation alone on the
        pixels within ± 8° of the model's spikes between ``core`` and ``r_edge``;
-    5. everything but the rotation on all pixels again;
-    6. a hop of the rotation by ± 2 scan steps (stages 4–5 re-run from each; the lowest
+    4. everything but the rotation on all pixels again;
+    5. a hop of the rotation by ± 2 scan steps (stages 3–4 re-run from each; the lowest
        χ² kept): out of a neighbouring basin that the other parameters' adaptation made
        self-consistent;
-    7. stages 4–5 repeated until the rotation moves by less than what moves a spike at
+    6. stages 3–4 repeated until the rotation moves by less than what moves a spike at
        ``r_edge`` by 1/250 pixel over a round (at most 8 rounds).
 
     This is the procedure the JWST campaign was found to need (docs/fitting.md), with its
@@ -99,10 +100,8 @@ def auto_stages(model: ImageModel, data) -> list[dict]:
     half_range = (b[1] - b[0]) if b is not None else 20.0
     half_range = min(half_range, 200 * step)  # at most 400 grid points
     scan = {"name": "rotation", "half_range": round(half_range, 6), "step": step}
-    stages.append({"free": ["rotation"] + [q for q in ("flux", "background") if q in free],
-                   "half": None, "scan": scan, "max_steps": 20})
     rest = {"free": "all", "fix": ["rotation"], "half": None}
-    stages.append(dict(rest, max_steps=25))
+    stages.append(dict(rest, scan=scan, max_steps=25))
     spikes = {"r_min": float(core), "r_max": float(r_edge), "half_width": 8.0,
               "profiles": False, "directions": "model"}
     spike_stage = {"free": ["rotation"], "half": None}
