@@ -557,15 +557,18 @@ def test_fainter_copy_has_the_fainter_stars_noise():
         fainter_copy(data, model, 10.0, 0.5, noise)
 
 
-def test_scan_puts_the_solver_in_the_right_basin(synthetic):
+def test_scan_puts_the_solver_in_the_right_basin(synthetic, capsys):
     """From a start 15° off (beyond the struts' 120° pattern's local basins), a stage
-    that scans the rotation first recovers it."""
+    that scans the rotation first recovers it; a verbose fit shows the scan's progress
+    (stage 0's scan bar) and the point it chose."""
     data, _ = synthetic
     model = _model(rotation=Param(TRUE["rotation"] + 15.0, True, (-30, 30)),
                    x0=Param(TRUE["x0"]), y0=Param(TRUE["y0"]),
                    flux=Param(TRUE["flux"]), background=Param(TRUE["background"]))
     res = fit(model, data, stages=[{"free": ["rotation"], "scan": {
-        "name": "rotation", "half_range": 20, "step": 1.0}}], max_steps=20)
+        "name": "rotation", "half_range": 20, "step": 1.0}}], max_steps=20, verbose=True)
+    out = capsys.readouterr()
+    assert "stage 0 scan" in out.err and "stage 0: scan of rotation: best" in out.out
     assert abs(res.values["rotation"] - TRUE["rotation"]) < 1.0  # a 19 × 19 px star
     assert res.stages[0]["scan"]["name"] == "rotation"
     # the grid is the multiples of the step: two starts inside one step choose the same
@@ -611,6 +614,29 @@ def test_chi2_slice_has_its_minimum_at_the_generators_rotation():
     for name, g in (("rotaton", grid), ("rotation", []), ("rotation", [1.0, np.nan])):
         with pytest.raises(FitInputError, match="chi2_slice"):
             chi2_slice(m, data, v, name, g)
+
+
+def test_a_scan_shows_its_progress_point_by_point(capsys):
+    """``chi2_slice``'s ``each`` sees every grid value with its χ² in turn; a stage's scan
+    in a verbose fit draws a bar on stderr that counts the grid's points (a scan of a
+    few hundred model images takes seconds), and a quiet one draws nothing."""
+    from difstar.fitting._analysis import scan_grid
+    from difstar.fitting._solve import _PixelTarget
+
+    clean = _numpy_star(**TRUE)
+    data = FitData.from_array(clean, sigma=2e-3 * clean.max())
+    m = _model()
+    v = dict(m.values(), **TRUE)
+    seen = []
+    c = chi2_slice(m, data, v, "rotation", [3.0, 4.0, 5.0], each=lambda x, q: seen.append((x, q)))
+    assert seen == [(3.0, c[0]), (4.0, c[1]), (5.0, c[2])]
+    kw = dict(name="rotation", half_range=1.0, step=0.5)
+    grid, cost = scan_grid(m, data, _PixelTarget(data), v, progress="stage 1 scan", **kw)
+    err = capsys.readouterr().err
+    assert grid.size == 5 and "stage 1 scan" in err and "5/5" in err
+    assert f"lowest {cost.min():.6g}" in err
+    _, quiet = scan_grid(m, data, _PixelTarget(data), v, **kw)
+    assert capsys.readouterr().err == "" and np.array_equal(quiet, cost)
 
 
 def test_model_images_and_chi2_at_the_generators_values():

@@ -11,6 +11,7 @@ from collections.abc import Mapping
 import jax.numpy as jnp
 import numpy as np
 
+from .._progress import step_bar
 from ._data import FitData, _angle_from, _polar
 from ._model import ImageModel
 from ._params import PERTURB, FitInputError, _finite
@@ -54,9 +55,10 @@ def _scan(model: ImageModel, data, target, values, *, name: str, half_range,
     return {**values, name: float(grid[int(np.argmin(cost))])}
 
 def scan_grid(model: ImageModel, data, target, values, *, name: str, half_range,
-              step) -> tuple[np.ndarray, np.ndarray]:
+              step, progress: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The grid :func:`_scan` searches (inside the bounds; possibly empty) and χ² at each
-    of its points."""
+    of its points. ``progress``: a label for a bar on stderr that counts the points (a
+    scan of a few hundred model images takes seconds); None: quiet."""
     why = _scan_problem(model, name, half_range, step)
     if why:
         raise FitInputError(f"scan: {why}.")
@@ -68,7 +70,15 @@ def scan_grid(model: ImageModel, data, target, values, *, name: str, half_range,
         grid = grid[(grid > p.bounds[0]) & (grid < p.bounds[1])]
     if grid.size == 0:
         return grid, np.zeros(0)
-    return grid, chi2_slice(model, data, values, name, grid, target=target)
+    with step_bar(progress, grid.size) as tick:
+        lowest = [math.inf]
+
+        def each(x, c):
+            lowest[0] = min(lowest[0], c)
+            tick(f"{name} {x:.6g}: χ² {c:.6g}, lowest {lowest[0]:.6g}")
+
+        return grid, chi2_slice(model, data, values, name, grid, target=target,
+                                each=None if tick is None else each)
 
 def scan_rivals(grid, cost, *, within: float) -> list[tuple[float, float]]:
     """The other minima of a scan that the data hardly tell from its lowest: grid points
@@ -87,14 +97,15 @@ def scan_rivals(grid, cost, *, within: float) -> list[tuple[float, float]]:
                   key=lambda x: x[1])
 
 def chi2_slice(model: ImageModel, data, values: Mapping[str, float], name: str, grid,
-               *, target=None) -> np.ndarray:
+               *, target=None, each=None) -> np.ndarray:
     """χ² of ``model`` on ``data`` (a FitData or a list of captures; on all their used
     pixels unless ``target`` says otherwise) with ``name`` at each value of ``grid`` and
     every other parameter held at ``values``: a slice through the objective, to see
     whether it has one minimum along that parameter or several (the rotation of a
     pupil whose spikes the model matches only in part). One compile, then one model
-    image per grid value. Raises :class:`FitInputError` for a name the model lacks or a
-    grid that is empty or not finite."""
+    image per grid value. ``each(value, χ²)``, if given, is called after each grid
+    value (a progress bar). Raises :class:`FitInputError` for a name the model lacks or
+    a grid that is empty or not finite."""
     if name not in model.params:
         raise FitInputError(f"chi2_slice: {name!r} is not a parameter of the model; known: "
                             f"{sorted(model.params)}.")
@@ -102,7 +113,12 @@ def chi2_slice(model: ImageModel, data, values: Mapping[str, float], name: str, 
     if g.size == 0 or not np.all(np.isfinite(g)):
         raise FitInputError(f"chi2_slice: grid must be a non-empty list of finite values; "
                             f"got {grid!r}.")
-    return np.array([chi2_at(model, data, {**values, name: float(x)}, target) for x in g])
+    out = []
+    for x in g:
+        out.append(chi2_at(model, data, {**values, name: float(x)}, target))
+        if each is not None:
+            each(float(x), out[-1])
+    return np.array(out)
 
 def spike_target(data: FitData, values: Mapping[str, float], *, n_spikes=8, r_min=12.0,
                  r_max=45.0, half_width=4.0, bin_width=0.25, profiles=True,

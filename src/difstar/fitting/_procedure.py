@@ -301,7 +301,8 @@ class _ImageRunner(StageRunner):
         hardly tell from it)."""
         model = self.model
         name = scan["name"]
-        grid, cost = scan_grid(model, ds, targets, values, **dict(scan))
+        grid, cost = scan_grid(model, ds, targets, values, **dict(scan),
+                               progress=f"stage {si} scan" if self.verbose else None)
         entry = {"stage": si, "scan": dict(scan), "best": values[name]}
         if grid.size:
             values = {**values, name: float(grid[int(np.argmin(cost))])}
