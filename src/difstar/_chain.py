@@ -144,6 +144,12 @@ def simulate(camera: Camera, scene: Scene, grid: Grid) -> Prediction:
     filtering, e.g. ``eqx.filter_jit``); differentiable with respect to every array in
     ``camera`` and ``scene``. When called with concrete values it first checks the
     sampling rules and raises :class:`SamplingError` naming the rule and the fix.
+
+    A plain call runs JAX operation by operation: compile it with
+    ``eqx.filter_jit(difstar.simulate)`` (as the README does). On the paper's focused
+    camera with a 256² crop, on 2 CPU cores, a plain call took 6.2 s the first time and
+    1.15 s again; compiled, 1.45 s the first time (the compile) and 0.018 s again, with
+    the same image.
     """
     if grid.method != "engine" and (camera.lens.wavefront is not None
                                     or camera.sensor.spectral_weights is not None
