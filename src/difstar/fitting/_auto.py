@@ -62,7 +62,8 @@ def auto_stages(model: ImageModel, data) -> list[dict]:
        a spike at ``r_edge`` by a quarter pixel (the grid finds the basin the spikes'
        fine structure makes), and the rotation held at the scan's best (stage 3 measures
        it; a solve of the rotation alone right after the scan cost a compiled program of
-       its own and moved no answer);
+       its own: without it the Spitzer star's answer is the same, and the JWST star's
+       falls in its other rotation basin at a χ² lower by 6, BENCHMARKS.md);
 
     and if ``rotation`` is free, the rotation measured on its spikes in turn with the rest:
 
