@@ -80,6 +80,10 @@ def run_case(name: str, out_root: Path, cache: Path, run: str) -> dict:
     if (out / "result.json").exists():  # a star image
         r = json.loads((out / "result.json").read_text())
         row["accuracy"] = f"residual {100 * r['residual_rms_over_peak']:.3f} % of peak"
+        if "rotation" in r["values"]:  # the answer itself, beside its quality
+            row["accuracy"] += (f"; rotation {r['values']['rotation']:.4f}° ± "
+                                f"{r['errors'].get('rotation', float('nan')):.4f}°; "
+                                f"χ²/dof {r['chi2_dof']:.4g}")
     else:  # RAW captures with a known truth
         r = json.loads((out / "fit_result.json").read_text())
         first = r["timing_s"].get("first_step_since_start")

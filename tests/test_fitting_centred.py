@@ -102,20 +102,28 @@ def test_which_solves_hold_the_optics():
 
 
 def test_a_fit_that_holds_the_optics_ends_where_the_engines_path_ends(monkeypatch):
-    clean = _numpy_star(**TRUE)
+    # a blurred star, so that the jitter's minimum lies inside its bounds: both solves
+    # reach their minima (with no blur the jitter creeps to its bound at 0 for 50–150
+    # steps, and two solves stopped short of it differ by their paths)
+    clean = _numpy_star(**TRUE, blur=0.5)
     sig = 2e-3 * clean.max()
     rng = np.random.default_rng(3)
     d = FitData.from_array(clean + rng.normal(0, sig, clean.shape), sigma=sig)
-    m = _model(rotation=Param(TRUE["rotation"]), jitter=Param(0.1, True, (0, 2)))
+    m = _model(rotation=Param(TRUE["rotation"]), jitter=Param(0.3, True, (0, 2)))
     used = []
     real = _solve.centred_psf
     monkeypatch.setattr(_solve, "centred_psf", lambda *a, **k: used.append(1) or real(*a, **k))
-    cen = fit(m, d, max_steps=30)
+    cen = fit(m, d, max_steps=60)
     assert used, "the solve did not use the centred PSF"
     monkeypatch.setattr(_solve, "optics_fixed", lambda *a: False)
-    eng = fit(m, d, max_steps=30)
+    eng = fit(m, d, max_steps=60)
+    assert cen.converged and eng.converged
+    assert abs(eng.values["jitter"] - 0.5) < 4 * eng.errors["jitter"]
+    # the two paths' minima differ by 0.11 (flux) and 0.14 (background) standard errors,
+    # with optimistix's trust-region update as with difstar's: the centred PSF's shift
+    # in its spectrum is periodic over the padded window, the engine's tilt is not
     for k in cen.free:
-        assert abs(cen.values[k] - eng.values[k]) < 0.1 * eng.errors[k], k
+        assert abs(cen.values[k] - eng.values[k]) < 0.2 * eng.errors[k], k
     assert abs(cen.values["x0"] - TRUE["x0"]) < 0.01
     assert abs(cen.values["y0"] - TRUE["y0"]) < 0.01
 

@@ -41,6 +41,36 @@ def test_solve_reaches_the_rosenbrock_minimum():
     assert res.loss < 1e-12 and res.loss_start > 1.0
 
 
+def test_a_rejected_gauss_newton_step_is_shortened_until_one_is_accepted():
+    """Many residuals (a loss of 10⁴–10⁵ at the start, so JᵀJ ≈ 10⁵) of a wiggly misfit
+    in one parameter: the Gauss–Newton step from the start overshoots into a higher
+    loss. Each rejection must shorten the next step to a quarter of its length
+    (difstar._lm.ShrinkingTrustRegion): the solve leaves the start and ends where the
+    loss's derivative, by central differences of the residuals in float64, is zero
+    (< 1e-4 of the start's), at a loss far below the start's. optimistix's own
+    update quarters 1/λ from 1, which leaves the step as it was until λ reaches JᵀJ:
+    the same test with it stops at the start after ten rejections."""
+    jax.config.update("jax_enable_x64", True)
+    x = jnp.linspace(-1.0, 1.0, 200)
+
+    def fn(u, _):
+        return 30.0 * (jnp.sin(3.0 * (u[0] - 0.7)) + 0.2 * jnp.sin(40.0 * u[0])) * (1 + 0.1 * x)
+
+    def loss(u):
+        return 0.5 * float(np.sum(np.asarray(fn(jnp.asarray([u]), None)) ** 2))
+
+    def slope(u, h=1e-6):
+        return (loss(u + h) - loss(u - h)) / (2 * h)
+
+    stepper = LMStepper(fn, rtol=1e-8, atol=1e-10)
+    res = stepper.solve(jnp.asarray([0.0]), None, max_steps=100, ftol=1e-12)
+    assert res.result == "converged" and res.accepted > 1
+    u = float(res.u[0])
+    assert u != 0.0 and res.loss < 0.8 * loss(0.0)
+    assert abs(slope(u)) < 1e-4 * abs(slope(0.0)), (u, slope(u), slope(0.0))
+    assert abs(res.loss - loss(u)) < 1e-9 * loss(u)
+
+
 def test_normal_covariance_is_the_inverse_normal_matrix():
     """For a Jacobian of full rank whose columns differ by 10 decades (parameters in
     metres beside parameters in nanometres), the covariance is (JᵀJ)⁻¹ (NumPy's inverse,

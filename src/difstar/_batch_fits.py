@@ -67,10 +67,10 @@ def _batched_steps(fitter, in_turn: bool):
 
         def step_one(u, dyn, a, hold):
             state = eqx.combine(dyn, box["static"])
-            u2, s2, done, ok, loss, size, acc = fitter._step(u, state, a)
+            u2, s2, done, ok, loss, size, acc, gain = fitter._step(u, state, a)
             d2, _ = eqx.partition(s2, eqx.is_array)
             d2 = jax.tree_util.tree_map(lambda new, old: jnp.where(hold, old, new), d2, dyn)
-            return jnp.where(hold, u, u2), d2, done, ok, loss, acc
+            return jnp.where(hold, u, u2), d2, done, ok, loss, acc, gain
 
         cache[in_turn] = (jax.jit(per_item(init_one, in_turn)),
                           jax.jit(per_item(step_one, in_turn)))
@@ -161,9 +161,10 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
                 u, dyn, a = st[d]
                 outs[d] = step(u, dyn, a, put(hold[sl[d]], devs[d]))
             for d in mine:
-                u, dyn, done_a, ok_a, loss_a, acc_a = outs[d]
+                u, dyn, done_a, ok_a, loss_a, acc_a, gain_a = outs[d]
                 st[d][:2] = [u, dyn]
-                done_h, ok_h, loss_h, acc_h = (np.asarray(x) for x in (done_a, ok_a, loss_a, acc_a))
+                done_h, ok_h, loss_h, acc_h, gain_h = (
+                    np.asarray(x) for x in (done_a, ok_a, loss_a, acc_a, gain_a))
                 for j, i in enumerate(range(sl[d].start, sl[d].stop)):
                     if hold[i]:
                         continue
@@ -171,7 +172,7 @@ def solve_many(fitter, u0, args, *, devices=None, max_steps: int = 100, ftol: fl
                     done, ok = bool(done_h[j]), bool(ok_h[j])
                     if k == 2:
                         loss0[i] = loss
-                    if rules[i].update(loss, int(acc_h[j])) and not done:
+                    if rules[i].update(loss, int(acc_h[j]), float(gain_h[j])) and not done:
                         done = ok = True
                     if done or k == max_steps:
                         hold[i] = True

@@ -123,12 +123,29 @@ def normal_covariance(jac):
     return cov, colnorm
 
 
+def gauss_newton_gain(jac, r):
+    """The largest fall of the loss ½|r|² that the linearisation (J, r) allows: ½ |J δ|²
+    at the Gauss–Newton step δ (least squares of J δ = −r; directions the columns do not
+    determine count for nothing). Column-scaled normal equations, solved by their
+    eigenvalues (P × P for P parameters: cheap beside the Jacobian itself)."""
+    norm = jnp.sqrt(jnp.sum(jac * jac, axis=0))
+    scale = jnp.where(norm > 0, 1.0 / jnp.where(norm > 0, norm, 1.0), 0.0)
+    g = (jac.T @ r) * scale
+    w, v = jnp.linalg.eigh((jac.T @ jac) * scale[:, None] * scale[None, :])
+    keep = w > 1e-12 * jnp.max(w)
+    proj = v.T @ g
+    return 0.5 * jnp.sum(jnp.where(keep, proj * proj / jnp.where(keep, w, 1.0), 0.0))
+
+
 class StopRule:
     """The loss-based half of the stopping rule, for one solve: call :meth:`update`
-    after every step with the loss of the last accepted point and the solver's count of
-    accepted steps; it says whether to stop (a fall below ``ftol``, relative, over the
-    last three accepted steps, or :data:`MAX_REJECTED` rejections in a row once a step
-    was accepted)."""
+    after every step with the loss of the last accepted point, the solver's count of
+    accepted steps and, where known, :func:`gauss_newton_gain` at that point; it says
+    whether to stop: a fall below ``ftol``, relative, over the last three accepted
+    steps; a rejected step once a step was accepted, where the Gauss–Newton step from
+    the accepted point promises less than that (no step the solver could still try
+    would gain more, and each try costs a model evaluation); or :data:`MAX_REJECTED`
+    rejections in a row once a step was accepted."""
 
     def __init__(self, ftol: float):
         self.ftol = float(ftol)
@@ -136,7 +153,7 @@ class StopRule:
         self.accepted = 0
         self.rejected = 0
 
-    def update(self, loss: float, accepted: int) -> bool:
+    def update(self, loss: float, accepted: int, gain: float | None = None) -> bool:
         if accepted > self.accepted:  # an accepted step: the loss moved to a new point
             self.history.append(loss)
             self.rejected = 0
@@ -144,8 +161,10 @@ class StopRule:
             self.rejected += 1
         self.accepted = accepted
         h = self.history
-        plateau = len(h) >= 4 and h[-4] - loss <= self.ftol * abs(loss)
-        return plateau or (bool(h) and self.rejected >= MAX_REJECTED)
+        small = self.ftol * abs(loss)
+        plateau = len(h) >= 4 and h[-4] - loss <= small
+        settled = bool(h) and self.rejected > 0 and gain is not None and gain <= small
+        return plateau or settled or (bool(h) and self.rejected >= MAX_REJECTED)
 
 
 @dataclasses.dataclass
@@ -163,6 +182,77 @@ class SolveResult:
     state: Any = dataclasses.field(default=None, repr=False)
     #: the aux of ``fn(u, args)`` at ``u`` (``LMStepper(..., has_aux=True)``), else None
     aux: Any = dataclasses.field(default=None, repr=False)
+
+
+def _damping_for_length(jac, r, target):
+    """The smallest damping λ whose step −(JᵀJ + λI)⁻¹Jᵀr is at most ``target`` long
+    (Euclidean), by bisection of log λ on the eigenvalues of JᵀJ (P × P); inf where
+    no target or gradient makes sense."""
+    w, v = jnp.linalg.eigh(jac.T @ jac)
+    w = jnp.maximum(w, 0.0)
+    g = v.T @ (jac.T @ r)
+    gnorm = jnp.sqrt(jnp.sum(g * g))
+    hi = gnorm / jnp.where(target > 0, target, 1.0)  # λ ≥ |g|/target is always short enough
+    lo = hi * 1e-16
+
+    def length(lam):
+        return jnp.sqrt(jnp.sum((g / (w + lam)) ** 2))
+
+    def halve(_, bracket):
+        lo, hi = bracket
+        mid = jnp.sqrt(lo * hi)
+        short = length(mid) <= target
+        return jnp.where(short, lo, mid), jnp.where(short, mid, hi)
+
+    _, hi = jax.lax.fori_loop(0, 60, halve, (lo, hi))
+    ok = (target > 0) & (gnorm > 0) & jnp.isfinite(hi)
+    return jnp.where(ok, hi, jnp.inf)
+
+
+#: After a rejected step the next is at most this fraction of its length
+#: (:class:`ShrinkingTrustRegion`).
+SHORTEN = 0.5
+
+
+class ShrinkingTrustRegion(optx.ClassicalTrustRegion):
+    """optimistix's trust-region update (accept, grow or shrink the step size by the
+    ratio of the actual to the predicted fall of the loss), except that after a rejected
+    step the next is at most :data:`SHORTEN` of the rejected one's length, as a trust
+    region's radius shrinks (Nocedal & Wright, Algorithm 4.1). Levenberg–Marquardt's
+    damping λ = 1/step size is in the units of JᵀJ, whose eigenvalues grow with the
+    number of pixels and their weights (10⁴–10⁵ for a star's χ²): quartering the step
+    size from 1, as optimistix does, shortens the directions whose curvature is below λ
+    but leaves a Gauss–Newton step in the others as it was until λ reaches them, so a
+    solve could spend ten model evaluations on nearly the same rejected step and stop
+    there, short of a minimum that shorter steps would have found. Where quartering
+    the step size already halves the step, the update is optimistix's."""
+
+    def init(self, y, f_info_struct):
+        # a strongly typed step size, as :meth:`step` returns it (the same program runs
+        # every step)
+        state = super().init(y, f_info_struct)
+        return eqx.tree_at(lambda s: s.step_size, state,
+                           jnp.asarray(state.step_size, dtype=jnp.result_type(float)))
+
+    def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
+        size, accept, result, new = super().step(first_step, y, y_eval, f_info,
+                                                 f_eval_info, state)
+        diff = jnp.concatenate([jnp.ravel(a - b) for a, b in zip(
+            jax.tree_util.tree_leaves(y_eval), jax.tree_util.tree_leaves(y))])
+        r = jnp.concatenate([jnp.ravel(x) for x in jax.tree_util.tree_leaves(f_info.residual)])
+        lam = _damping_for_length(f_info.jac.as_matrix(), r,
+                                  SHORTEN * jnp.sqrt(jnp.sum(diff * diff)))
+        shorter = jnp.minimum(size, jnp.where(jnp.isfinite(lam) & (lam > 0), 1.0 / lam, size))
+        size = jnp.where(accept, size, shorter)
+        return size, accept, result, eqx.tree_at(lambda s: s.step_size, new, size)
+
+
+class LevenbergMarquardt(optx.LevenbergMarquardt):
+    """optimistix's Levenberg–Marquardt with :class:`ShrinkingTrustRegion`."""
+
+    def __init__(self, rtol, atol):
+        super().__init__(rtol=rtol, atol=atol)
+        self.search = ShrinkingTrustRegion()
 
 
 class LMStepper:
@@ -196,8 +286,10 @@ class LMStepper:
             leaves = jax.tree_util.tree_leaves(state.f_info.residual)
             loss = 0.5 * sum(jnp.sum(r * r) for r in leaves)
             size = getattr(state.search_state, "step_size", jnp.asarray(1.0))
+            r = jnp.concatenate([x.ravel() for x in leaves])
+            gain = gauss_newton_gain(state.f_info.jac.as_matrix(), r)
             return u, state, done, res == optx.RESULTS.successful, loss, size, \
-                state.num_accepted_steps
+                state.num_accepted_steps, gain
 
         @eqx.filter_jit
         def linearisation(state):
@@ -216,7 +308,7 @@ class LMStepper:
         rtol = jnp.asarray(self.rtol if rtol is None else float(rtol), float)
         atol = jnp.asarray(self.atol if atol is None else float(atol), float)
         if self.method == "lm":
-            return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+            return LevenbergMarquardt(rtol=rtol, atol=atol)
         return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.QR())
 
     def _init(self, u, a):
@@ -255,8 +347,8 @@ class LMStepper:
         t0 = time.perf_counter()
         for k in range(1, max_steps + 1):
             t1 = time.perf_counter()
-            u, state, done_a, ok_a, loss_a, size, acc_a = self._step_with(sol, u, state,
-                                                                          args)
+            u, state, done_a, ok_a, loss_a, size, acc_a, gain = self._step_with(
+                sol, u, state, args)
             loss = float(loss_a)
             if k == 1:
                 t_compile = time.perf_counter() - t1
@@ -264,7 +356,7 @@ class LMStepper:
             if k == 2:  # the first step only evaluates the start
                 loss0 = loss
             acc = int(acc_a)
-            if rule.update(loss, acc) and not done:
+            if rule.update(loss, acc, float(gain)) and not done:
                 done = ok = True
             if progress is not None:
                 progress(k, loss, float(size), done, np.asarray(u))

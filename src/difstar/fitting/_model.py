@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import re
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -148,6 +149,23 @@ PLAN_MARGIN = 1.5
 #: solve moves it away from a start at zero, and a plan made for zero then needs a
 #: second plan, program and solve (the Spitzer fit's last stage: one more compile).
 PLAN_HEADROOM = 0.1
+
+def _oriented(pup, v, has_distortion: bool):
+    """``pup`` rotated by ``rotation`` and, with ``has_distortion``, distorted by
+    ``shear``, ``aspect``."""
+    pup = pup.transformed(jnp.deg2rad(v["rotation"]))
+    if has_distortion:
+        d = image_distortion(v["shear"], v["aspect"])
+        pup = distorted(pup, jnp.linalg.inv(d).T)  # the pupil map for image map D
+    return pup
+
+
+@functools.lru_cache(maxsize=32)
+def _compiled_build(build, has_distortion: bool):
+    """A pupil builder's ``build`` (or ``segment``) and the orientation as one compiled
+    function of the values (:meth:`ImageModel.concrete_pupil`)."""
+    return eqx.filter_jit(lambda v: _oriented(build(v), v, has_distortion))
+
 
 class ImageModel(ForwardModel):
     """A star image (the image fit's :class:`ForwardModel`): pupil builder, wavefront
@@ -362,11 +380,8 @@ class ImageModel(ForwardModel):
             self.plan(shape, light, segment=True)
         ang = self._bound("pixel_scale", min) * ARCSEC
         z = _PITCH / ang
-        v = self.values()
-        if segment:
-            pupil, r = self._oriented(self.pupil.segment(v), v), float(self.pupil.segment_radius)
-        else:
-            pupil, r = self._pupil_at(v), float(self.pupil.max_radius)
+        pupil = self.concrete_pupil(segment=segment)
+        r = float(self.pupil.segment_radius if segment else self.pupil.max_radius)
         # the widest shift of the star any value or bound allows (x0@i: each capture's)
         shift = max([self.max_shift] + [abs(b) for k, p in self.params.items()
                                          if k.split("@")[0] in ("x0", "y0")
@@ -409,11 +424,19 @@ class ImageModel(ForwardModel):
 
     def _oriented(self, pup, v):
         """``pup`` rotated by ``rotation`` and distorted by ``shear``, ``aspect``."""
-        pup = pup.transformed(jnp.deg2rad(v["rotation"]))
-        if self.has_distortion:
-            d = image_distortion(v["shear"], v["aspect"])
-            pup = distorted(pup, jnp.linalg.inv(d).T)  # the pupil map for image map D
-        return pup
+        return _oriented(pup, v, self.has_distortion)
+
+    def concrete_pupil(self, values: Mapping[str, Any] | None = None, *,
+                       segment: bool = False):
+        """The oriented pupil (or with ``segment`` its one segment) at concrete
+        ``values`` (default: the model's own), built by one compiled program, kept by the
+        builder: what a plan or a memory check looks at. Built eagerly, JAX would run, and
+        on a first run compile, each of the builder's operations one at a time (2 s for
+        the JWST pupil's 18 segments)."""
+        v = self.values() if values is None else values
+        build = self.pupil.segment if segment else self.pupil.build
+        return _compiled_build(build, self.has_distortion)(
+            {k: jnp.asarray(x, float) for k, x in v.items()})
 
     def image(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None,
               exposure: float = 1.0, light: Light | None = None):

@@ -375,7 +375,7 @@ def _check_fit_memory(model: ImageModel, datas: Sequence[FitData]) -> None:
     shape = model.padded_shape((h, w))
     try:
         plan = model.plan(shape)
-        one = psf_bytes(plan, shape, 1, _edges(model._pupil_at(model.values())), _PITCH)
+        one = psf_bytes(plan, shape, 1, _edges(model.concrete_pupil()), _PITCH)
     except (ValueError, TypeError):  # the fit's own first step reports these, named
         return
     k = len(model.free)
