@@ -44,7 +44,7 @@ def test_solve_reaches_the_rosenbrock_minimum():
 def test_a_rejected_gauss_newton_step_is_shortened_until_one_is_accepted():
     """Many residuals (a loss of 10⁴–10⁵ at the start, so JᵀJ ≈ 10⁵) of a wiggly misfit
     in one parameter: the Gauss–Newton step from the start overshoots into a higher
-    loss. Each rejection must shorten the next step to a quarter of its length
+    loss. Each rejection must shorten the next step to at most half its length
     (difstar._lm.ShrinkingTrustRegion): the solve leaves the start and ends where the
     loss's derivative, by central differences of the residuals in float64, is zero
     (< 1e-4 of the start's), at a loss far below the start's. optimistix's own
