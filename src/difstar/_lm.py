@@ -258,13 +258,19 @@ class ShrinkingTrustRegion(optx.ClassicalTrustRegion):
         fell = f_eval_info.as_min() - f_info.as_min()
         poor = accept & jnp.invert(first_step) & (
             fell > POOR * self.predict_reduction(y_diff, f_info))
-        at = jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b),
-                                    (f_eval_info.residual, f_eval_info.jac.as_matrix()),
-                                    (f_info.residual, f_info.jac.as_matrix()))
-        r = jnp.concatenate([jnp.ravel(x) for x in jax.tree_util.tree_leaves(at[0])])
-        lam = _damping_for_length(at[1], r, SHORTEN * jnp.sqrt(jnp.sum(diff * diff)))
-        shorter = jnp.minimum(size, jnp.where(jnp.isfinite(lam) & (lam > 0), 1.0 / lam, size))
-        size = jnp.where(accept & jnp.invert(poor), size, shorter)
+        target = SHORTEN * jnp.sqrt(jnp.sum(diff * diff))
+
+        def shorter(info):  # the step size whose step from ``info``'s point is short enough
+            r = jnp.concatenate([jnp.ravel(x) for x in
+                                 jax.tree_util.tree_leaves(info.residual)])
+            lam = _damping_for_length(info.jac.as_matrix(), r, target)
+            return jnp.minimum(size, jnp.where(jnp.isfinite(lam) & (lam > 0), 1.0 / lam, size))
+
+        # only where the step is to be shortened, and from the one point it starts from
+        # (the Jacobian materialised once, not on every accepted step)
+        size = jax.lax.cond(accept & jnp.invert(poor), lambda: size,
+                            lambda: jax.lax.cond(accept, lambda: shorter(f_eval_info),
+                                                 lambda: shorter(f_info)))
         return size, accept, result, eqx.tree_at(lambda s: s.step_size, new, size)
 
 
@@ -302,13 +308,18 @@ class LMStepper:
 
         @eqx.filter_jit
         def step(sol, u, state, a):
+            accepted_before = state.num_accepted_steps
             u, state, _ = sol.step(wrapped, u, a, {}, state, tags)
             done, res = sol.terminate(wrapped, u, a, {}, state, tags)
             leaves = jax.tree_util.tree_leaves(state.f_info.residual)
             loss = 0.5 * sum(jnp.sum(r * r) for r in leaves)
             size = getattr(state.search_state, "step_size", jnp.asarray(1.0))
             r = jnp.concatenate([x.ravel() for x in leaves])
-            gain = gauss_newton_gain(state.f_info.jac.as_matrix(), r)
+            # StopRule looks at the gain only after a rejected step: computed only then
+            gain = jax.lax.cond(
+                state.num_accepted_steps == accepted_before,
+                lambda: gauss_newton_gain(state.f_info.jac.as_matrix(), r).astype(loss.dtype),
+                lambda: jnp.asarray(jnp.inf, loss.dtype))
             return u, state, done, res == optx.RESULTS.successful, loss, size, \
                 state.num_accepted_steps, gain
 
