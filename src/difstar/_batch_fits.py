@@ -35,6 +35,7 @@ from ._batch import (
 )
 from ._distributed import _collective, check_lost, dry_run
 from ._lm import SolveResult, StopRule
+from ._xla import solver_jit_options
 
 
 @dataclasses.dataclass
@@ -72,8 +73,9 @@ def _batched_steps(fitter, in_turn: bool):
             d2 = jax.tree_util.tree_map(lambda new, old: jnp.where(hold, old, new), d2, dyn)
             return jnp.where(hold, u, u2), d2, done, ok, loss, acc, gain
 
-        cache[in_turn] = (jax.jit(per_item(init_one, in_turn)),
-                          jax.jit(per_item(step_one, in_turn)))
+        options = solver_jit_options()
+        cache[in_turn] = (jax.jit(per_item(init_one, in_turn), **options),
+                          jax.jit(per_item(step_one, in_turn), **options))
     return cache[in_turn]
 
 

@@ -47,6 +47,7 @@ from ._param import ForwardModel, Param
 from ._pupil import Polygon, RegularPolygon
 from ._pupil_curved import CurvedIris
 from ._sensor import Response
+from ._xla import solver_jit_options
 from ._zernike import Zernike
 
 SHARED = ("circumradius", "curvature", "rotation", "vertex_radial", "vertex_angular",
@@ -435,7 +436,7 @@ class Fitter:
             return jnp.concatenate([v.ravel() for v in jax.tree_util.tree_leaves(r)])
 
         self._flat = eqx.filter_jit(flat)
-        self._jac = eqx.filter_jit(jax.jacfwd(flat))
+        self._jac = eqx.filter_jit(jax.jacfwd(flat), **solver_jit_options())
         # one compiled prediction (the photometric start, the reweighting's σ, the
         # restarts and the outputs all read it): a second program for the mosaics alone
         # would cost a compile of the chain for nothing

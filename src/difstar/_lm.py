@@ -28,6 +28,7 @@ import numpy as np
 import optimistix as optx
 
 from ._batch import AXIS, P
+from ._xla import solver_jit_options
 
 #: Consecutive rejected steps after which a solve that has moved counts as converged:
 #: the trust region has shrunk by about 2^10 and no nearby point is lower.
@@ -300,13 +301,12 @@ class LMStepper:
         self.method = method
         self.rtol, self.atol = float(rtol), float(atol)
         tags = frozenset()
+        jit_options = solver_jit_options()  # a shorter compile on a CPU (see _xla)
 
-        @eqx.filter_jit
         def init(sol, u, a):
             f_struct, aux_struct = jax.eval_shape(lambda: wrapped(u, a))
             return sol.init(wrapped, u, a, {}, f_struct, aux_struct, tags)
 
-        @eqx.filter_jit
         def step(sol, u, state, a):
             accepted_before = state.num_accepted_steps
             u, state, _ = sol.step(wrapped, u, a, {}, state, tags)
@@ -323,7 +323,6 @@ class LMStepper:
             return u, state, done, res == optx.RESULTS.successful, loss, size, \
                 state.num_accepted_steps, gain
 
-        @eqx.filter_jit
         def linearisation(state):
             # the Jacobian and residuals the last accepted step was linearised at: the
             # step returns that point as u, so these are the ones at u
@@ -331,8 +330,12 @@ class LMStepper:
                                  jax.tree_util.tree_leaves(state.f_info.residual)])
             return state.f_info.jac.as_matrix(), r
 
-        self._init_with, self._step_with = init, step
-        self._linearisation = linearisation
+        # compiled here with the solver's options; top-level programs only, since JAX
+        # takes compiler options on no jit nested inside another
+        self._init_with = eqx.filter_jit(init, **jit_options)
+        self._step_with = eqx.filter_jit(step, **jit_options)
+        self._linearisation = eqx.filter_jit(linearisation, **jit_options)
+        self._init_traced, self._step_traced = init, step
 
     def solver(self, rtol: float | None = None, atol: float | None = None):
         """The optimistix solver with these tolerances (default: the stepper's), as
@@ -344,12 +347,14 @@ class LMStepper:
         return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.QR())
 
     def _init(self, u, a):
-        """The solver's first state at ``u`` (the stepper's tolerances)."""
-        return self._init_with(self.solver(), u, a)
+        """The solver's first state at ``u`` (the stepper's tolerances), to be traced
+        inside the caller's own jit (the batched fits)."""
+        return self._init_traced(self.solver(), u, a)
 
     def _step(self, u, state, a):
-        """One step from ``u``, ``state`` (the stepper's tolerances)."""
-        return self._step_with(self.solver(), u, state, a)
+        """One step from ``u``, ``state`` (the stepper's tolerances), to be traced
+        inside the caller's own jit (the batched fits)."""
+        return self._step_traced(self.solver(), u, state, a)
 
     def linearisation(self, result: SolveResult):
         """(J, r) at ``result.u``: the flattened residuals (leaves in tree order) and

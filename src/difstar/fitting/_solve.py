@@ -17,6 +17,7 @@ import numpy as np
 from .._lm import LMStepper, normal_covariance, with_batched_jacobian
 from .._param import step_map
 from .._progress import moved_most, step_bar
+from .._xla import solver_jit_options
 from ._centred import centred_psf, fine_factor, image_from_centred, optics_fixed
 from ._data import FitData, _angle_from, _polar
 from ._model import ImageModel
@@ -425,14 +426,14 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
 
         if not residual:
             batched = with_batched_jacobian(lambda x, a: res(x, a)[0])
-            return jax.jit(jax.jacfwd(batched))
+            return jax.jit(jax.jacfwd(batched), **solver_jit_options())
         both = with_batched_jacobian(res)  # (residual, model images), one linearisation
 
         def with_values(x, a):  # the residual differentiated, both returned as they are
             out = both(x, a)
             return out[0], out
 
-        return jax.jit(jax.jacfwd(with_values, has_aux=True))
+        return jax.jit(jax.jacfwd(with_values, has_aux=True), **solver_jit_options())
 
     key, keep = trace_key(model, _as_list(data), _as_list(target))
     jacobian = program(("jacobian", key, tuple(free), residual), make, keep)

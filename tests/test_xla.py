@@ -1,0 +1,60 @@
+"""difstar._xla: the compiler options of the solvers' programs.
+
+The options change how XLA generates code, never what it computes: a solve compiled
+with them must end where a solve compiled without them ends (float64, to rounding),
+and a jaxlib that does not know them must compile as usual instead of failing."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from difstar import _lm, _xla
+
+
+@pytest.fixture
+def fresh_options():
+    _xla.solver_jit_options.cache_clear()
+    yield
+    _xla.solver_jit_options.cache_clear()
+
+
+def test_on_a_cpu_the_solver_programs_use_the_older_fusion_code_generator(fresh_options):
+    if jax.default_backend() != "cpu":
+        assert _xla.solver_jit_options() == {}
+        return
+    assert _xla.solver_jit_options() == {"compiler_options": _xla.SOLVER_CPU_OPTIONS}
+
+
+def test_an_option_this_jaxlib_does_not_know_falls_back_to_plain_compiles(
+        fresh_options, monkeypatch):
+    monkeypatch.setattr(_xla, "SOLVER_CPU_OPTIONS", {"xla_no_such_option_here": True})
+    assert _xla.solver_jit_options() == {}
+
+
+def _decay_fit(monkeypatch, options):
+    """A three-parameter exponential decay fitted to 60 exact samples from (0, 0, 0)."""
+    monkeypatch.setattr(_lm, "solver_jit_options", lambda: options)
+    t = jnp.linspace(0.0, 3.0, 60)
+    truth = 2.0 * jnp.exp(-1.3 * t) + 0.25
+
+    def residuals(u, y):
+        return u[0] * jnp.exp(-u[1] * t) + u[2] - y
+
+    sol = _lm.LMStepper(residuals, rtol=1e-12, atol=1e-12).solve(
+        jnp.zeros(3), truth, max_steps=200, ftol=1e-14)
+    return np.asarray(sol.u), sol.result
+
+
+def test_a_solve_compiled_with_the_options_ends_where_one_without_them_ends(monkeypatch):
+    jax.config.update("jax_enable_x64", True)
+    on_cpu = jax.default_backend() == "cpu"
+    with_options, r1 = _decay_fit(
+        monkeypatch, {"compiler_options": dict(_xla.SOLVER_CPU_OPTIONS)} if on_cpu else {})
+    without, r2 = _decay_fit(monkeypatch, {})
+    assert r1 == r2 == "converged"
+    # the independent truth: the parameters the samples were made with
+    np.testing.assert_allclose(with_options, [2.0, 1.3, 0.25], rtol=1e-9)
+    np.testing.assert_allclose(with_options, without, rtol=1e-12, atol=1e-14)
