@@ -34,6 +34,20 @@ def test_an_option_this_jaxlib_does_not_know_falls_back_to_plain_compiles(
     assert _xla.solver_jit_options() == {}
 
 
+def test_a_jax_whose_jit_takes_no_compiler_options_falls_back_too(fresh_options,
+                                                                 monkeypatch):
+    plain_jit = jax.jit
+
+    def old_jit(fn, **kwargs):
+        if "compiler_options" in kwargs:
+            raise TypeError("jit() got an unexpected keyword argument 'compiler_options'")
+        return plain_jit(fn, **kwargs)
+
+    monkeypatch.setattr(jax, "jit", old_jit)
+    if jax.default_backend() == "cpu":
+        assert _xla.solver_jit_options() == {}
+
+
 def _decay_fit(monkeypatch, options):
     """A three-parameter exponential decay fitted to 60 exact samples from (0, 0, 0)."""
     monkeypatch.setattr(_lm, "solver_jit_options", lambda: options)

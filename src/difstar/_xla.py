@@ -59,12 +59,15 @@ def solver_jit_options() -> dict:
     """Keyword arguments for ``jax.jit`` / ``eqx.filter_jit`` of a solver's programs:
     :data:`SOLVER_CPU_OPTIONS` where the default backend is a CPU and this jaxlib knows
     them (a tiny program is compiled with them once per process to find out); nothing
-    elsewhere (GPUs compile otherwise) or where the options are unknown."""
+    elsewhere (GPUs compile otherwise), where the options are unknown or where
+    ``jax.jit`` takes none (an older jax)."""
     if jax.default_backend() != "cpu":
         return {}
     try:
         jax.jit(lambda x: x + 1, compiler_options=SOLVER_CPU_OPTIONS).lower(
             jnp.zeros(())).compile()
-    except jax.errors.JaxRuntimeError:  # "No such compile option": compile as usual
+    except (jax.errors.JaxRuntimeError, TypeError):
+        # "No such compile option", or a jax whose jit takes no compiler options: compile
+        # as usual
         return {}
     return {"compiler_options": dict(SOLVER_CPU_OPTIONS)}
