@@ -11,7 +11,8 @@ made parts of the chain 3–10× slower than their arithmetic (:func:`stored`).
 A fit's solver programs (a Levenberg–Marquardt step with its batched Jacobian, the
 covariance's Jacobian) are large and run a few to a few dozen times each, so on a CPU
 their compile is most of a first fit's time. XLA's older fusion code generator compiles
-them about 35 % faster, and they run as fast (:func:`solver_jit_options`).
+an image fit's about 35 % faster (the RAW fit's step no faster), and they run as fast
+(:func:`solver_jit_options`).
 """
 
 from __future__ import annotations
