@@ -841,37 +841,6 @@ def test_a_fit_plans_its_psf_for_the_wavefront_it_finds():
     assert res.chi2_dof < 2.0
 
 
-def test_a_plan_that_still_holds_is_kept_for_the_next_stage():
-    """A stage whose start the plan an earlier stage ran on still serves (the same test
-    as :meth:`ImageModel.plan_holds`: margin 1) runs on that plan, so on that stage's
-    compiled programs, although a plan made afresh for 1.5 × its values would be finer.
-    A values that plan cannot serve gets a plan of its own, and a model with its own
-    plans (another campaign) plans afresh."""
-    model, data = _twin_case(3, z4=400e-9)
-    model = model.with_values({"z4": 40.0})
-    shape = model.padded_shape(data.image.shape)
-    first = model.plan(shape)
-
-    def fresh(z4):  # a model that made no plan before (a plan cache of its own)
-        m, _ = _twin_case(3, z4=400e-9)
-        return m.with_values({"z4": z4})
-
-    # a z4 the first plan serves at margin 1 whose fresh plan (1.5 × z4) is finer
-    grid = np.linspace(40.0, 1000.0, 97)
-    kept = [z for z in grid
-            if fresh(z).plan(shape, margin=1.0, headroom=0.0).subcells <= first.subcells
-            < fresh(z).plan(shape).subcells]
-    assert kept, "no z4 between the two plans' reach on the grid"
-    z = kept[-1]
-    assert model.with_values({"z4": z}).plan(shape) is first
-    assert model.with_values({"z4": z}).plan_holds({"z4": z}, shape)
-    assert fresh(z).plan(shape).subcells > first.subcells
-    # beyond the first plan's reach: a finer plan, kept in turn for smaller values
-    far = model.with_values({"z4": 1000.0}).plan(shape)
-    assert far.subcells > first.subcells
-    assert model.with_values({"z4": z}).plan(shape) is first  # still the coarsest that serves
-
-
 def test_a_fit_says_when_its_plan_never_caught_up(monkeypatch):
     """Where the answer still needs a finer PSF plan after the last re-plan, the fit
     warns (its values stand on a plan made for smaller Zernike terms) rather than

@@ -150,14 +150,6 @@ PLAN_MARGIN = 1.5
 #: second plan, program and solve (the Spitzer fit's last stage: one more compile).
 PLAN_HEADROOM = 0.1
 
-def _plan_serves(used, need) -> bool:
-    """Whether PSF plan ``used`` is fine enough where ``need`` (the plan the values ask
-    for at margin 1) would do: the same plan but for at least as many pupil sub-cells."""
-    same = (used.method, used.nodes, used.period, used.pupil_window, used.use_defocus) \
-        == (need.method, need.nodes, need.period, need.pupil_window, need.use_defocus)
-    return same and used.subcells >= need.subcells
-
-
 def _oriented(pup, v, has_distortion: bool):
     """``pup`` rotated by ``rotation`` and, with ``has_distortion``, distorted by
     ``shear``, ``aspect``."""
@@ -384,14 +376,6 @@ class ImageModel(ForwardModel):
         key = (tuple(shape), tuple(light.wavelengths), segment, tuple(sorted(coeffs.items())))
         if key in self._plans:
             return self._plans[key]
-        made = ("made", tuple(shape), tuple(light.wavelengths))
-        if not segment and (margin, headroom) == (PLAN_MARGIN, PLAN_HEADROOM):
-            # a plan an earlier stage ran on that still holds for these values is kept:
-            # the stage then reuses that stage's programs (BENCHMARKS.md, "Plans kept")
-            kept = self._kept_plan(self._plans.get(made, []), shape, light)
-            if kept is not None:
-                self._plans[key] = kept
-                return kept
         if not segment and self.has_incoherent:
             self.plan(shape, light, segment=True)
         ang = self._bound("pixel_scale", min) * ARCSEC
@@ -413,16 +397,7 @@ class ImageModel(ForwardModel):
                         sampling="point" if q > 1 else "pixel",
                         accuracy=self.accuracy, wavefront=wf, max_radius=r)
         self._plans[key] = plan
-        if not segment and (margin, headroom) == (PLAN_MARGIN, PLAN_HEADROOM):
-            self._plans.setdefault(made, []).append(plan)
         return plan
-
-    def _kept_plan(self, plans, shape, light):
-        """The coarsest of ``plans`` (made for ``shape`` and ``light`` at other values)
-        that holds for this model's values (:meth:`plan_holds`' test), or None."""
-        need = self.plan(shape, light, margin=1.0, headroom=0.0) if plans else None
-        return min((p for p in plans if _plan_serves(p, need)),
-                   key=lambda p: p.subcells, default=None)
 
     def _planned_size(self, name: str, headroom: float) -> float:
         """|value| of a Zernike term, or for a free one at least ``headroom`` × the
@@ -440,7 +415,9 @@ class ImageModel(ForwardModel):
         (margin 1, no headroom) asks no more sub-cells of the pupil and is otherwise the same."""
         used = self.plan(shape, light)
         need = self.with_values(values).plan(shape, light, margin=1.0, headroom=0.0)
-        return _plan_serves(used, need)
+        same = (used.method, used.nodes, used.period, used.pupil_window, used.use_defocus) \
+            == (need.method, need.nodes, need.period, need.pupil_window, need.use_defocus)
+        return same and used.subcells >= need.subcells
 
     def _pupil_at(self, v):
         return self._oriented(self.pupil.build(v), v)
