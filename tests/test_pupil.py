@@ -193,7 +193,9 @@ def test_tiled_coverage_derivatives_equal_autodiff_of_green_terms(trial):
     out_t, jvp_t = jax.jit(lambda a, t: jax.jvp(of(tiled_outline_coverage), a, t))(args,
                                                                                   tangents)
     out_p, jvp_p = jax.jit(lambda a, t: jax.jvp(of(outline_coverage), a, t))(args, tangents)
-    np.testing.assert_allclose(out_t, out_p, rtol=0, atol=1e-14)
+    # the same Green's terms, summed in another order (the tiled raster: by cell pieces
+    # and a cumulative sum over the rows): equal to float64 round-off
+    np.testing.assert_allclose(out_t, out_p, rtol=0, atol=1e-13)
     scale = float(jnp.max(jnp.abs(jvp_p)))
     np.testing.assert_allclose(jvp_t, jvp_p, rtol=0, atol=1e-10 * scale)
     g = jnp.asarray(rng.normal(size=out_p.shape))
@@ -201,6 +203,44 @@ def test_tiled_coverage_derivatives_equal_autodiff_of_green_terms(trial):
              for fn in (tiled_outline_coverage, outline_coverage)]
     for got, want in zip(*grads):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(want))))
+
+
+def _clipped_area(poly, x0, x1, y0, y1):
+    """Area of a polygon clipped to the box [x0, x1] × [y0, y1] (Sutherland–Hodgman,
+    then the shoelace formula): an independent truth for one cell's coverage."""
+    pts = [tuple(p) for p in poly]
+    for axis, bound, keep_above in ((0, x0, True), (0, x1, False), (1, y0, True),
+                                    (1, y1, False)):
+        out = []
+        for i, cur in enumerate(pts):
+            prev = pts[i - 1]
+            cin = (cur[axis] >= bound) if keep_above else (cur[axis] <= bound)
+            pin = (prev[axis] >= bound) if keep_above else (prev[axis] <= bound)
+            if cin != pin:
+                t = (bound - prev[axis]) / (cur[axis] - prev[axis])
+                out.append(tuple(prev[k] + t * (cur[k] - prev[k]) for k in range(2)))
+            if cin:
+                out.append(cur)
+        pts = out
+        if not pts:
+            return 0.0
+    a = np.asarray(pts)
+    return 0.5 * abs(np.sum(a[:, 0] * np.roll(a[:, 1], -1) - np.roll(a[:, 0], -1) * a[:, 1]))
+
+
+@pytest.mark.parametrize("trial", [0, 1, 3])
+def test_tiled_coverage_equals_clipped_areas(trial):
+    # Truth: each cell's area inside the polygon by clipping the polygon to the cell
+    # (Sutherland–Hodgman), on the perturbed polygons (convex or not) of _tiled_case, y
+    # rising and falling, a vertical edge and a vertex on grid lines (trial 3).
+    v, x, y, cell, _ = _tiled_case(trial)
+    got = np.asarray(difstar.Polygon(v).tiled_coverage(x, y, cell))
+    poly = np.asarray(v)
+    want = np.array([[_clipped_area(poly, xc - cell / 2, xc + cell / 2, yc - cell / 2,
+                                    yc + cell / 2) / cell**2
+                      for xc in np.asarray(x).ravel()] for yc in np.asarray(y).ravel()])
+    assert want.max() == pytest.approx(1.0) and want.min() == 0.0
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
 
 
 def test_tiled_coverage_gradient_matches_finite_differences():

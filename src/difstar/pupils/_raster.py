@@ -108,32 +108,76 @@ def _cell_pieces(v0, v1, x, y):
     tile the plane (uniform ``x`` (1, W) and ``y`` (H, 1), spacing = cell side).
 
     Every grid line an edge crosses is a break in its parameter s ∈ [0, 1]; between
-    consecutive breaks the edge lies in one cell. Returns (s_lo, s_hi, row, col, inside),
-    each (e, W + H + 3): the pieces, their cells (clipped) and whether that cell is on the
-    grid and the piece has length. Primal-only work, O(e (W + H) log(W + H)).
+    consecutive breaks the edge lies in one cell. Returns (s_lo, s_hi, row, col), each
+    (e, W + H + 3): the pieces and their cells' indices, off the grid (below 0, or W or H
+    and beyond) where a piece lies beyond it; a piece with s_hi = s_lo has no length.
+    Primal-only work, O(e (W + H) log(W + H)).
     """
     w, h = x.shape[-1], y.shape[0]
     x0, sx = _axis(x)
     y0, sy = _axis(y)
     d = v1 - v0
 
-    def breaks(c0, step, count, a, da):
+    def breaks(c0, step, count, a, da):  # ascending: the lines in the edge's direction
         lines = c0 + (jnp.arange(count + 1, dtype=a.dtype) - 0.5) * step
         ok = (da != 0)[:, None]
         s = (lines[None, :] - a[:, None]) / jnp.where(ok, da[:, None], 1.0)
-        return jnp.where(ok, jnp.clip(s, 0.0, 1.0), 0.0)
+        s = jnp.where(ok, jnp.clip(s, 0.0, 1.0), 0.0)
+        return jnp.where((step * da < 0)[:, None], s[:, ::-1], s)
+
+    def merge(a, b):  # two ascending rows into one (a sort of them costs 10× more)
+        at = jnp.arange(a.shape[0]) + jnp.searchsorted(b, a, side="left")
+        bt = jnp.arange(b.shape[0]) + jnp.searchsorted(a, b, side="right")
+        return jnp.zeros(a.shape[0] + b.shape[0], a.dtype).at[at].set(a).at[bt].set(b)
 
     e = v0.shape[0]
     s = jnp.concatenate(
-        [jnp.zeros((e, 1), d.dtype), jnp.ones((e, 1), d.dtype),
-         breaks(x0, sx, w, v0[:, 0], d[:, 0]), breaks(y0, sy, h, v0[:, 1], d[:, 1])], axis=1)
-    s = jnp.sort(s, axis=1)
+        [jnp.zeros((e, 1), d.dtype),
+         jax.vmap(merge)(breaks(x0, sx, w, v0[:, 0], d[:, 0]),
+                         breaks(y0, sy, h, v0[:, 1], d[:, 1])),
+         jnp.ones((e, 1), d.dtype)], axis=1)
     lo, hi = s[:, :-1], s[:, 1:]
     mid = 0.5 * (lo + hi)
     col = jnp.floor((v0[:, :1] + mid * d[:, :1] - x0) / sx + 0.5).astype(jnp.int32)
     row = jnp.floor((v0[:, 1:] + mid * d[:, 1:] - y0) / sy + 0.5).astype(jnp.int32)
-    inside = (hi > lo) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    return lo, hi, jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1), inside
+    return lo, hi, row, col
+
+def _tiled_primal(v0, v1, x, y, cell):
+    """:func:`outline_coverage` on cells that tile the plane, from the edges' cell pieces
+    (:func:`_cell_pieces`) instead of every edge over every cell: O(e (W + H)) work and
+    a cumulative sum over the rows, where the edge-by-edge raster costs e passes over
+    the W × H plane (the 18 hexagons of a segmented pupil: 108 passes).
+
+    Green's term of a piece in cell (row, col), ∫ clamp(y − y_bottom, 0, cell) dx over
+    the piece, is its mean height above the bottom of its own cell times its run in x,
+    the whole cell side for every cell of its column below it, and nothing above it."""
+    h, w = y.shape[0], x.shape[-1]
+    _, sy = _axis(y)
+    lo, hi, row, col = _cell_pieces(v0, v1, x, y)
+    d = v1 - v0
+    dtype = jnp.result_type(x, y, v0)
+    cell = jnp.asarray(cell, dtype)
+    run = (hi - lo) * d[:, :1]  # each piece's signed run in x
+    ok = (hi > lo) & (col >= 0) & (col < w)
+    on = ok & (row >= 0) & (row < h)
+    ys = y.reshape(-1)
+    height = v0[:, 1:] + 0.5 * (lo + hi) * d[:, 1:] - (ys[jnp.clip(row, 0, h - 1)] - 0.5 * cell)
+    cols = jnp.clip(col, 0, w - 1)
+    # the pieces' own cells
+    own = jnp.where(on, -run * height / (cell * cell), 0.0)
+    total = jnp.zeros(h * w, dtype).at[(jnp.clip(row, 0, h - 1) * w + cols).reshape(-1)].add(
+        own.reshape(-1)).reshape(h, w)
+    # the cells below each piece in its column (y lower: rows before it where y rises
+    # with the row, after it where y falls), by a cumulative sum over the rows: a piece
+    # above the grid reaches every row, one below it none
+    full = jnp.where(ok, -run / cell, 0.0).reshape(-1)
+    rising = sy > 0
+    k = jnp.where(rising, jnp.clip(row, 0, h), jnp.clip(row, -1, h - 1) + 1)
+    steps = jnp.zeros((h + 1) * w, dtype).at[(k * w + cols).reshape(-1)].add(full)
+    steps = steps.reshape(h + 1, w)
+    up = jnp.cumsum(steps[::-1], axis=0)[::-1][1:]  # rows after r: Σ over k > r
+    down = jnp.cumsum(steps, axis=0)[:h]  # rows before r: Σ over k ≤ r
+    return total + jnp.where(rising, up, down)
 
 @jax.custom_jvp
 def tiled_outline_coverage(v0: Float[Array, "e 2"], v1: Float[Array, "e 2"], x: Array,
@@ -154,7 +198,7 @@ def tiled_outline_coverage(v0: Float[Array, "e 2"], v1: Float[Array, "e 2"], x: 
     work, and both cost O(W + H) per edge on top of a zero plane, where autodiff of the
     edge terms costs several passes over the W × H plane per edge.
     """
-    return outline_coverage(v0, v1, x, y, cell)
+    return _tiled_primal(v0, v1, x, y, cell)
 
 @tiled_outline_coverage.defjvp
 def _tiled_outline_jvp(primals, tangents):
@@ -162,7 +206,9 @@ def _tiled_outline_jvp(primals, tangents):
     dv0, dv1, dx, dy, dcell = tangents
     out = tiled_outline_coverage(v0, v1, x, y, cell)
     h, w = out.shape
-    lo, hi, row, col, inside = _cell_pieces(v0, v1, x, y)
+    lo, hi, row, col = _cell_pieces(v0, v1, x, y)
+    inside = (hi > lo) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    row, col = jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1)
     d = v1 - v0
     nx, ny = d[:, 1:], -d[:, :1]  # outward normal of a counter-clockwise outline, × length
     ds = hi - lo
