@@ -142,6 +142,12 @@ def _cell_pieces(v0, v1, x, y):
     row = jnp.floor((v0[:, 1:] + mid * d[:, 1:] - y0) / sy + 0.5).astype(jnp.int32)
     return lo, hi, row, col
 
+def _on_grid(lo, hi, row, col, h: int, w: int):
+    """(on, row, col) of :func:`_cell_pieces`' pieces: whether each has length and lies
+    on the H × W grid, and its cell's indices clipped to the grid."""
+    on = (hi > lo) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    return on, jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1)
+
 def _tiled_primal(v0, v1, x, y, cell):
     """:func:`outline_coverage` on cells that tile the plane, from the edges' cell pieces
     (:func:`_cell_pieces`) instead of every edge over every cell: O(e (W + H)) work and
@@ -158,19 +164,16 @@ def _tiled_primal(v0, v1, x, y, cell):
     dtype = jnp.result_type(x, y, v0)
     cell = jnp.asarray(cell, dtype)
     run = (hi - lo) * d[:, :1]  # each piece's signed run in x
-    ok = (hi > lo) & (col >= 0) & (col < w)
-    on = ok & (row >= 0) & (row < h)
-    ys = y.reshape(-1)
-    height = v0[:, 1:] + 0.5 * (lo + hi) * d[:, 1:] - (ys[jnp.clip(row, 0, h - 1)] - 0.5 * cell)
-    cols = jnp.clip(col, 0, w - 1)
+    on, rows, cols = _on_grid(lo, hi, row, col, h, w)
+    height = v0[:, 1:] + 0.5 * (lo + hi) * d[:, 1:] - (y.reshape(-1)[rows] - 0.5 * cell)
     # the pieces' own cells
     own = jnp.where(on, -run * height / (cell * cell), 0.0)
-    total = jnp.zeros(h * w, dtype).at[(jnp.clip(row, 0, h - 1) * w + cols).reshape(-1)].add(
+    total = jnp.zeros(h * w, dtype).at[(rows * w + cols).reshape(-1)].add(
         own.reshape(-1)).reshape(h, w)
     # the cells below each piece in its column (y lower: rows before it where y rises
     # with the row, after it where y falls), by a cumulative sum over the rows: a piece
     # above the grid reaches every row, one below it none
-    full = jnp.where(ok, -run / cell, 0.0).reshape(-1)
+    full = jnp.where((hi > lo) & (col >= 0) & (col < w), -run / cell, 0.0).reshape(-1)
     rising = sy > 0
     k = jnp.where(rising, jnp.clip(row, 0, h), jnp.clip(row, -1, h - 1) + 1)
     steps = jnp.zeros((h + 1) * w, dtype).at[(k * w + cols).reshape(-1)].add(full)
@@ -207,8 +210,7 @@ def _tiled_outline_jvp(primals, tangents):
     out = tiled_outline_coverage(v0, v1, x, y, cell)
     h, w = out.shape
     lo, hi, row, col = _cell_pieces(v0, v1, x, y)
-    inside = (hi > lo) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    row, col = jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1)
+    inside, row, col = _on_grid(lo, hi, row, col, h, w)
     d = v1 - v0
     nx, ny = d[:, 1:], -d[:, :1]  # outward normal of a counter-clockwise outline, × length
     ds = hi - lo
