@@ -112,3 +112,30 @@ def test_aux_of_the_answer_rides_with_the_batched_jacobian():
     assert abs(float(sol.u[0]) - 1.7) < 1e-6
     assert np.allclose(sol.aux, raw(sol.u, data)[1], rtol=1e-10)
     assert np.allclose(sol.aux, [3.0, 0.5], rtol=1e-6)
+
+
+def test_a_step_compiled_ahead_gives_the_same_solve_and_other_shapes_still_solve():
+    """LMStepper.compile_ahead: the next solve of those shapes runs the program compiled
+    on the background thread (the same steps and answer as a stepper without it); a
+    solve of other shapes falls back to the jitted step."""
+    jax.config.update("jax_enable_x64", True)
+
+    def fn(u, _):
+        return jnp.concatenate([10.0 * (u[1:] - u[:-1] ** 2), 1.0 - u[:-1]])
+
+    u0 = jnp.array([-1.2, 1.0, 0.5])
+    plain = LMStepper(fn, rtol=1e-10, atol=1e-12).solve(u0, None, max_steps=200, ftol=1e-14)
+    ahead = LMStepper(fn, rtol=1e-10, atol=1e-12)
+    ahead.compile_ahead(u0, None)
+    program = ahead._ahead.result()  # compiled on the background thread
+    ahead.compile_ahead(u0, None)  # a second call keeps the first program
+    assert ahead._ahead.result() is program
+    res = ahead.solve(u0, None, max_steps=200, ftol=1e-14)
+    assert (res.steps, res.result) == (plain.steps, plain.result) == (res.steps, "converged")
+    np.testing.assert_array_equal(np.asarray(res.u), np.asarray(plain.u))
+    assert res.compile_seconds < plain.compile_seconds  # the step was compiled already
+    u1 = jnp.array([-1.2, 1.0, 0.5, 0.2])
+    other = ahead.solve(u1, None, max_steps=300, ftol=1e-14)
+    same = LMStepper(fn, rtol=1e-10, atol=1e-12).solve(u1, None, max_steps=300, ftol=1e-14)
+    assert other.result == same.result == "converged" and other.steps == same.steps
+    np.testing.assert_array_equal(np.asarray(other.u), np.asarray(same.u))

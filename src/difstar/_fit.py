@@ -471,6 +471,12 @@ class Fitter:
         """See :meth:`difstar._lm.LMStepper.solve` (the stopping rule)."""
         return self._lm.solve(u0, args, max_steps=max_steps, ftol=ftol, progress=progress)
 
+    def compile_ahead(self, u0, args) -> None:
+        """Start compiling the solver's step for ``u0``, ``args``'s shapes on a
+        background thread (:meth:`difstar._lm.LMStepper.compile_ahead`), to be used by
+        the next :meth:`solve` of those shapes."""
+        self._lm.compile_ahead(jnp.asarray(u0), args)
+
     def linear_images(self, u) -> dict:
         """{config: the linear images (K_c, 3, h, w) at ``u``}, for :meth:`sensor_args`."""
         return {k: p.image for k, p in self.predict(u, full=True).items()}

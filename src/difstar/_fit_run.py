@@ -28,7 +28,7 @@ from difstar._fit import (
     make_args,
     to_unconstrained,
 )
-from difstar._fit_procedure import FIRST_STEP, _log, procedure_of, run_stages
+from difstar._fit_procedure import FIRST_STEP, _log, observed_data, procedure_of, run_stages
 from difstar._fit_truth import compare_truth
 from difstar._param import Param
 from difstar._sampling import choose_grid
@@ -258,6 +258,9 @@ def fit_manifest(man, *, u0=None, verbose: bool = True, model=None, caps=None, f
                         atol=man.solver["atol"], devices=devices)
     if u0 is None:
         u0 = to_unconstrained(model)
+    # the solver's step compiles on a second thread while the photometric start compiles
+    # and runs the forward model (the step's compile is most of the first step's wait)
+    fitter.compile_ahead(u0, make_args(model, observed_data(model, caps, man.noise), u0))
     u0 = photometric_start(fitter, caps, u0)
     if verbose:
         _log(f"difstar fit: {len(model.captures)} captures, {model.n_free} free parameters, "
