@@ -127,9 +127,9 @@ def test_a_step_compiled_ahead_gives_the_same_solve_and_other_shapes_still_solve
     plain = LMStepper(fn, rtol=1e-10, atol=1e-12).solve(u0, None, max_steps=200, ftol=1e-14)
     ahead = LMStepper(fn, rtol=1e-10, atol=1e-12)
     ahead.compile_ahead(u0, None)
-    program = ahead._ahead.result()  # compiled on the background thread
+    program = ahead._step_with._program()  # compiled on the background thread
     ahead.compile_ahead(u0, None)  # a second call keeps the first program
-    assert ahead._ahead.result() is program
+    assert program is not None and ahead._step_with._program() is program
     res = ahead.solve(u0, None, max_steps=200, ftol=1e-14)
     assert (res.steps, res.result) == (plain.steps, plain.result) == (res.steps, "converged")
     np.testing.assert_array_equal(np.asarray(res.u), np.asarray(plain.u))

@@ -18,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import equinox as eqx
@@ -28,11 +27,9 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
+from ._ahead import Ahead
 from ._batch import AXIS, P
 from ._xla import solver_jit_options
-
-#: The one background thread that compiles solver steps ahead (:meth:`LMStepper.compile_ahead`).
-_COMPILER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="difstar-compile")
 
 #: Consecutive rejected steps after which a solve that has moved counts as converged:
 #: the trust region has shrunk by about 2^10 and no nearby point is lower.
@@ -337,48 +334,23 @@ class LMStepper:
         # compiled here with the solver's options; top-level programs only, since JAX
         # takes compiler options on no jit nested inside another
         self._init_with = eqx.filter_jit(init, **jit_options)
-        self._step_with = eqx.filter_jit(step, **jit_options)
+        self._step_with = Ahead(eqx.filter_jit(step, **jit_options))
         self._linearisation = eqx.filter_jit(linearisation, **jit_options)
         self._init_traced, self._step_traced = init, step
-        #: the step compiled ahead (:meth:`compile_ahead`): a Future of the program
-        self._ahead: Future | None = None
-
     def compile_ahead(self, u, args) -> None:
-        """Trace the solver's step for a start and data of the shapes of ``u`` and
-        ``args`` now, and compile it on a background thread, while the caller prepares
-        the start (a photometric start compiles and runs the forward model: on a 2-core
-        CPU the two compiles then run side by side). The next :meth:`solve` of those
-        shapes runs the program compiled here, waiting for it if need be; a solve of
+        """Compile the solver's step for a start and data of the shapes of ``u`` and
+        ``args`` on the background thread (:mod:`difstar._ahead`) while the caller
+        prepares the start (a photometric start compiles and runs the forward model:
+        on a 2-core CPU the two compiles run side by side). The first state is made
+        here (its trace is the chain's linearisation's). The next :meth:`solve` of those
+        shapes runs the program compiled ahead, waiting for it if need be; a solve of
         other shapes compiles its own, as without this call. Once a stepper has a
-        program compiled ahead, later calls do nothing (a study's fits share it). Uses
-        the persistent compilation cache where it is on, like any compile."""
-        if self._ahead is not None:
+        program compiled ahead, later calls do nothing (a study's fits share it)."""
+        if self._step_with.started:
             return
         sol = self.solver()
         state = self._init_with(sol, u, args)  # traces the chain's linearisation
-        lowered = self._step_with.lower(sol, u, state, args)
-        self._ahead = _COMPILER.submit(lowered.compile)
-
-    def _step_program(self):
-        """The step compiled ahead where there is one (None: the jitted step)."""
-        if self._ahead is None:
-            return None
-        try:
-            return self._ahead.result()
-        except Exception:  # noqa: BLE001 - compiled again by the jitted step, which reports
-            self._ahead = None
-            return None
-
-    def _run_step(self, sol, u, state, args):
-        """One step by the program compiled ahead where its shapes are these, else by
-        the jitted step (which compiles its own the first time)."""
-        program = self._step_program()
-        if program is not None:
-            try:
-                return program(sol, u, state, args)
-            except (TypeError, ValueError):  # another fit's shapes: not this program's
-                pass
-        return self._step_with(sol, u, state, args)
+        self._step_with.compile_ahead(sol, u, state, args)
 
     def solver(self, rtol: float | None = None, atol: float | None = None):
         """The optimistix solver with these tolerances (default: the stepper's), as
@@ -427,7 +399,7 @@ class LMStepper:
         t0 = time.perf_counter()
         for k in range(1, max_steps + 1):
             t1 = time.perf_counter()
-            u, state, done_a, ok_a, loss_a, size, acc_a, gain = self._run_step(
+            u, state, done_a, ok_a, loss_a, size, acc_a, gain = self._step_with(
                 sol, u, state, args)
             loss = float(loss_a)
             if k == 1:
