@@ -3,13 +3,16 @@
 On a 2-core CPU a fit's solver programs take seconds to compile, mostly on one core,
 while the fit's Python work before it (a photometric start, another stage) leaves the
 other core idle. :class:`Ahead` wraps a jitted function: :meth:`Ahead.compile_ahead`
-traces, lowers and compiles it for given arguments on :data:`COMPILER` (JAX traces in
-any thread; the Python parts share the interpreter with the caller, the compile does
-not);
-a later call with arguments of those shapes runs that program (waiting for it if need
-be), any other call the jitted function itself. Results are the same either way: the
-program compiled ahead is the one the jitted function would compile (the same lowering
-and options; the persistent compilation cache serves both)."""
+traces, lowers and compiles it for given arguments on :data:`COMPILER`. A later call
+with arguments of those shapes runs that program (waiting for it if need be), any other
+call the jitted function itself. Results are the same either way: the program compiled
+ahead is the one the jitted function would compile (the same lowering and options; the
+persistent compilation cache serves both).
+
+JAX traces in any thread, but the Python parts of a trace share the interpreter's lock
+with the caller; only XLA's compile runs beside it. So the caller should make the large
+traces itself first (the solver's first state, :meth:`difstar._lm.LMStepper.compile_ahead`)
+and leave the lowering and the compile to the background."""
 
 from __future__ import annotations
 

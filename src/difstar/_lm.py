@@ -337,6 +337,7 @@ class LMStepper:
         self._step_with = Ahead(eqx.filter_jit(step, **jit_options))
         self._linearisation = eqx.filter_jit(linearisation, **jit_options)
         self._init_traced, self._step_traced = init, step
+
     def compile_ahead(self, u, args) -> None:
         """Compile the solver's step for a start and data of the shapes of ``u`` and
         ``args`` on the background thread (:mod:`difstar._ahead`) while the caller
