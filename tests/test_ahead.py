@@ -19,8 +19,9 @@ def test_a_program_compiled_ahead_serves_its_shapes_and_others_fall_back():
     assert not g.started
     x = jnp.linspace(0.0, 1.0, 7)
     g.compile_ahead(x, 2.0)
-    assert g.started and calls == [(7,)]
-    program = g._program()
+    assert g.started
+    program = g._program()  # waits for the background thread, which traced f
+    assert program is not None and calls == [(7,)]
     xs = np.linspace(0.0, 1.0, 7) + 1.0  # the truth in NumPy
     np.testing.assert_allclose(np.asarray(g(x + 1.0, 3.0)), np.sin(xs) * 3.0 + xs.sum(),
                                rtol=1e-14)
