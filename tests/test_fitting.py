@@ -1615,3 +1615,25 @@ def test_scan_says_when_the_data_cannot_tell_two_rotations(synthetic):
     narrow = fit(_model(rotation=Param(0.0, True, (-20, 20)), **held), data, stages=[stage])
     assert [s for s in narrow.stages if "scan" in s][0]["rivals"] == []
     assert not any("hardly tell" in w for w in narrow.warnings)
+
+
+def test_a_later_stage_keeps_an_earlier_plan_that_is_fine_enough():
+    """A stage plans for 1.5 × its start's Zernike terms; where a plan made before for
+    the same window is already fine enough for them (the plan of 1 × them, a free term
+    at least at a tenth of its bounds' reach), that plan serves, and with it the programs
+    compiled for it. Terms beyond its reach get a finer plan of their own, and
+    plan_holds still asks of an answer the plan it needs, not the plan it was given."""
+    model, data = _twin_case(3, z4=400e-9)  # z4 free within ±1000 nm
+    shape = model.padded_shape(data.image.shape)
+    start = model.with_values({"z4": 0.0}).plan(shape)
+    grown = model.with_values({"z4": 200.0})
+    # planned afresh, 1.5 × 200 nm would ask for more sub-cells than the start's plan
+    assert grown.plan(shape, reuse=False).subcells > start.subcells
+    assert grown.plan(shape) is start
+    assert grown.plan_holds({"z4": 200.0}, shape)
+    far = model.with_values({"z4": 400.0})
+    assert not grown.plan_holds({"z4": 400.0}, shape)
+    assert far.plan(shape).subcells > start.subcells
+    assert far.plan_holds({"z4": 400.0}, shape)
+    # a plan once finer keeps serving the smaller terms it covers
+    assert model.with_values({"z4": 300.0}).plan(shape) is far.plan(shape)

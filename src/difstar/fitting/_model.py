@@ -150,6 +150,14 @@ PLAN_MARGIN = 1.5
 #: second plan, program and solve (the Spitzer fit's last stage: one more compile).
 PLAN_HEADROOM = 0.1
 
+
+def _as_fine(plan, need) -> bool:
+    """Whether ``plan`` serves where ``need`` is asked for: the same method, nodes,
+    period and pupil window, and no fewer sub-cells of the pupil."""
+    same = (plan.method, plan.nodes, plan.period, plan.pupil_window, plan.use_defocus) \
+        == (need.method, need.nodes, need.period, need.pupil_window, need.use_defocus)
+    return same and plan.subcells >= need.subcells
+
 def _oriented(pup, v, has_distortion: bool):
     """``pup`` rotated by ``rotation`` and, with ``has_distortion``, distorted by
     ``shear``, ``aspect``."""
@@ -357,7 +365,8 @@ class ImageModel(ForwardModel):
         return (int(shape[0]) + 2 * self.pad, int(shape[1]) + 2 * self.pad)
 
     def plan(self, shape, light: Light | None = None, *, segment: bool = False,
-             margin: float = PLAN_MARGIN, headroom: float = PLAN_HEADROOM):
+             margin: float = PLAN_MARGIN, headroom: float = PLAN_HEADROOM,
+             reuse: bool = True):
         """The PSF plan for an output window ``shape`` (data pixels, padding included) and
         ``light`` (default: the model's), made once (cached) with the largest angular
         scale and star shift the bounds allow and the Zernike terms at ``margin`` × the
@@ -365,17 +374,45 @@ class ImageModel(ForwardModel):
         checks with :meth:`plan_holds` that its answer stays within them). ``segment``:
         the plan of one segment's pattern (the incoherent part; tilt only, no Zernike
         terms), which the whole pupil's plan makes and caches as well, so that
-        :meth:`image` finds it inside a trace."""
+        :meth:`image` finds it inside a trace.
+
+        ``reuse``: a plan made before for this window and light serves instead wherever
+        it is fine enough for these values (the plan of ``margin`` 1, with the
+        ``headroom``): a later stage then runs the programs an earlier one compiled,
+        where the values grew a little, rather than a plan of its own (the automatic
+        Spitzer fit's last whole-image stage compiled its solver again for one more
+        sub-cell). A stage's answer is checked by :meth:`plan_holds` either way."""
         light = self.light if light is None else light
+        key = self._plan_key(shape, light, segment, margin, headroom)
+        if not reuse:
+            if key not in self._plans:
+                self._plans[key] = self._make_plan(shape, light, segment, key)
+            return self._plans[key]
+        in_use = ("in use",) + key
+        if in_use not in self._plans:
+            need = self.plan(shape, light, segment=segment, margin=1.0, headroom=headroom,
+                             reuse=False)
+            made = self._plans.setdefault(("made",) + key[:3], [])
+            plan = next((old for old in reversed(made) if _as_fine(old, need)), None)
+            if plan is None:
+                plan = self.plan(shape, light, segment=segment, margin=margin,
+                                 headroom=headroom, reuse=False)
+                made.append(plan)
+            self._plans[in_use] = plan
+        return self._plans[in_use]
+
+    def _plan_key(self, shape, light, segment, margin, headroom) -> tuple:
         # the Zernike terms (the whole pupil's only) at margin × their values: their
         # slope sets the pupil's sub-cells, whose number grows with it (planning for the
         # bounds' extremes made the Spitzer fit's pupil 5× finer than its answer needs)
         coeffs = {} if segment else {
             j: 1e-9 * margin * self._planned_size(f"z{j}", headroom) for j in self.zernike}
         coeffs = {j: c for j, c in coeffs.items() if c > 0}
-        key = (tuple(shape), tuple(light.wavelengths), segment, tuple(sorted(coeffs.items())))
-        if key in self._plans:
-            return self._plans[key]
+        return (tuple(shape), tuple(light.wavelengths), segment, tuple(sorted(coeffs.items())))
+
+    def _make_plan(self, shape, light, segment, key):
+        """The plan of :meth:`plan`'s ``key`` (its last part: the Zernike coefficients)."""
+        coeffs = dict(key[3])
         if not segment and self.has_incoherent:
             self.plan(shape, light, segment=True)
         ang = self._bound("pixel_scale", min) * ARCSEC
@@ -396,7 +433,6 @@ class ImageModel(ForwardModel):
                         pixel_pitch=_PITCH / q, shape=(shape[0] * q, shape[1] * q),
                         sampling="point" if q > 1 else "pixel",
                         accuracy=self.accuracy, wavefront=wf, max_radius=r)
-        self._plans[key] = plan
         return plan
 
     def _planned_size(self, name: str, headroom: float) -> float:
@@ -414,10 +450,9 @@ class ImageModel(ForwardModel):
         its own values) is fine enough for ``values`` too: the plan ``values`` need
         (margin 1, no headroom) asks no more sub-cells of the pupil and is otherwise the same."""
         used = self.plan(shape, light)
-        need = self.with_values(values).plan(shape, light, margin=1.0, headroom=0.0)
-        same = (used.method, used.nodes, used.period, used.pupil_window, used.use_defocus) \
-            == (need.method, need.nodes, need.period, need.pupil_window, need.use_defocus)
-        return same and used.subcells >= need.subcells
+        need = self.with_values(values).plan(shape, light, margin=1.0, headroom=0.0,
+                                             reuse=False)
+        return _as_fine(used, need)
 
     def _pupil_at(self, v):
         return self._oriented(self.pupil.build(v), v)
