@@ -32,18 +32,7 @@ from ._detector import (
 )
 from ._params import _PITCH, ARCSEC, FitInputError, _as_param
 from ._parts import Light, PupilBuilder
-
-
-class _Shifted(eqx.Module):
-    """A wavefront tilt (tx, ty) plus Zernike terms: OPD = tx x + ty y + Σ c_j Z_j."""
-
-    zernike: Zernike | None
-    tx: Any
-    ty: Any
-
-    def opd(self, x, y):
-        w = self.tx * x + self.ty * y
-        return w if self.zernike is None else w + self.zernike.opd(x, y)
+from ._plans import PLAN_HEADROOM, PLAN_MARGIN, Shifted, as_fine
 
 #: Parameters every model has, with defaults (SI units except where noted).
 #: The detector's layers add theirs (:mod:`._detector`: ``jitter``, each halo's).
@@ -141,22 +130,6 @@ def image_distortion(shear, aspect):
     (drizzled) or distorted detector grid has such a map; it moves the spikes of a rigid
     pupil off their 60° spacing."""
     return jnp.array([[1.0, 0.0], [shear, 1.0 + aspect]])
-
-#: The Zernike terms' margin in a fit's PSF plan: a stage plans for 1.5 × its start's
-#: values, and solves again from its answer where that needs a finer plan.
-PLAN_MARGIN = 1.5
-#: A free Zernike term is planned for at least this fraction of its bounds' reach: a
-#: solve moves it away from a start at zero, and a plan made for zero then needs a
-#: second plan, program and solve (the Spitzer fit's last stage: one more compile).
-PLAN_HEADROOM = 0.1
-
-
-def _as_fine(plan, need) -> bool:
-    """Whether ``plan`` serves where ``need`` is asked for: the same method, nodes,
-    period and pupil window, and no fewer sub-cells of the pupil."""
-    same = (plan.method, plan.nodes, plan.period, plan.pupil_window, plan.use_defocus) \
-        == (need.method, need.nodes, need.period, need.pupil_window, need.use_defocus)
-    return same and plan.subcells >= need.subcells
 
 def _oriented(pup, v, has_distortion: bool):
     """``pup`` rotated by ``rotation`` and, with ``has_distortion``, distorted by
@@ -393,7 +366,7 @@ class ImageModel(ForwardModel):
             need = self.plan(shape, light, segment=segment, margin=1.0, headroom=headroom,
                              reuse=False)
             made = self._plans.setdefault(("made",) + key[:3], [])
-            plan = next((old for old in reversed(made) if _as_fine(old, need)), None)
+            plan = next((old for old in reversed(made) if as_fine(old, need)), None)
             if plan is None:
                 plan = self.plan(shape, light, segment=segment, margin=margin,
                                  headroom=headroom, reuse=False)
@@ -424,7 +397,7 @@ class ImageModel(ForwardModel):
                                          if k.split("@")[0] in ("x0", "y0")
                                          for b in [p.value, *(p.bounds or ())]])
         tilt = shift * self._bound("pixel_scale", max) * ARCSEC
-        wf = _Shifted(Zernike(coeffs, r) if coeffs else None, tilt, tilt)
+        wf = Shifted(Zernike(coeffs, r) if coeffs else None, tilt, tilt)
         # where the data's pixels undersample the intensity, point samples q times finer
         # (the pixels and the blurs then act exactly: :meth:`image`)
         q = fine_factor(self, light)
@@ -452,7 +425,7 @@ class ImageModel(ForwardModel):
         used = self.plan(shape, light)
         need = self.with_values(values).plan(shape, light, margin=1.0, headroom=0.0,
                                              reuse=False)
-        return _as_fine(used, need)
+        return as_fine(used, need)
 
     def _pupil_at(self, v):
         return self._oriented(self.pupil.build(v), v)
@@ -510,7 +483,7 @@ class ImageModel(ForwardModel):
             # a shift by (x0 columns right, y0 rows down) data pixels is a tilt of the
             # wavefront: the field's phase exp(i k W) with W = −θ·x moves the image by +θ
             tx, ty = -v["x0"] * ang, v["y0"] * ang
-            whole_wf, seg_wf = _Shifted(zern, tx, ty), _Shifted(None, tx, ty)
+            whole_wf, seg_wf = Shifted(zern, tx, ty), Shifted(None, tx, ty)
         grid = dict(wavelength=np.asarray(light.wavelengths),
                     weights=np.asarray(light.weights), z_image=_PITCH / ang,
                     pixel_pitch=_PITCH / q, shape=tuple(fine_shape))
