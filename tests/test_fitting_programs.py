@@ -169,3 +169,42 @@ def test_a_spike_stages_errors_come_from_its_solvers_last_linearisation(monkeypa
     assert spike_errors["rotation"] == pytest.approx(again.stages[0]["errors"]["rotation"],
                                                      rel=1e-6)
     assert res.errors["rotation"] == pytest.approx(again.errors["rotation"], rel=1e-6)
+
+
+def test_the_standard_errors_jacobian_compiles_while_a_hop_runs(monkeypatch):
+    """As a procedure's first hop (or repeat) begins, the Jacobian of the standard
+    errors at its end is compiled on the background thread, for the shapes the end will
+    have: the end runs that program, and the errors are those of the same fit that
+    compiled its Jacobian at the end."""
+    from difstar._ahead import Ahead
+    from difstar.fitting import _procedure
+
+    clean = _numpy_star((21, 21), **TRUE)
+    sigma = 1e-3 * clean.max()
+    data = FitData.from_array(clean + np.random.default_rng(5).normal(0, sigma, clean.shape),
+                              sigma=sigma)
+    stages = [{"free": ["x0", "y0", "flux", "background"], "max_steps": 30},
+              {"hop": {"name": "x0", "offsets": [-0.4, 0.4], "stages": 1}}]
+    model = _model(rotation=Param(TRUE["rotation"]))
+    used = []
+    real_call = Ahead.__call__
+
+    def spy(self, *args):
+        if self.started:  # the program compiled ahead takes these arguments (else raises)
+            self._program()(*args)
+            used.append(self)
+        return real_call(self, *args)
+
+    monkeypatch.setattr(Ahead, "__call__", spy)
+    _programs.release_programs()
+    ahead = fit(model, data, stages=stages)
+    jac = [v[0] for k, v in _programs._PROGRAMS.items() if k[0] == "jacobian"]
+    assert len(jac) == 1 and used == jac  # compiled ahead, and the end ran it
+    _programs.release_programs()
+    monkeypatch.setattr(_procedure, "compile_errors_ahead", lambda *a: None)
+    used.clear()
+    late = fit(model, data, stages=stages)
+    assert used == []
+    assert ahead.values == late.values
+    for k in ahead.errors:
+        assert ahead.errors[k] == pytest.approx(late.errors[k], rel=1e-12), k

@@ -33,6 +33,12 @@ class StageRunner(ABC):
         self.log: list[dict] = []
         self.notes: list[str] = []
 
+    def reruns_begin(self, state: Any) -> None:
+        """Called once, as the procedure's first hop or repeat begins from ``state``: the
+        programs of the stages it re-runs are compiled by then, and running them leaves
+        a core idle at times. A runner may start here what the end of the fit needs (the
+        image fit compiles its standard errors' Jacobian on the background thread)."""
+
     @abstractmethod
     def solve(self, si: int, st: Any, state: Any, *, again: bool = False) -> Any:
         """Run stage ``si`` (a :class:`Solve`, or a stage of this kind's own) from
@@ -81,7 +87,11 @@ def run_procedure(runner: StageRunner, stages: Sequence, state: Any) -> Any:
     :class:`Repeat`, or the runner's own kinds) in turn from ``state``; returns the
     final state. Each stage starts where the last ended."""
     stages = list(stages)
+    reruns = False
     for si, st in enumerate(stages):
+        if isinstance(st, (Hop, Repeat)) and not reruns:
+            runner.reruns_begin(state)
+            reruns = True
         if isinstance(st, Hop):
             state = _hop(runner, stages, si, st, state)
         elif isinstance(st, Repeat):

@@ -23,6 +23,7 @@ from ._solve import (
     _errors,
     _one_fit,
     _PixelTarget,
+    compile_errors_ahead,
     model_images,
 )
 from ._stage_types import Hop, Repeat, Solve, parse_stage, stage_dicts
@@ -180,6 +181,12 @@ class _ImageRunner(StageRunner):
 
     def loss(self, state: _State, ref: _State) -> float:
         return chi2_at(self.model, list(ref.datas), state.values)
+
+    def reruns_begin(self, state: _State) -> None:
+        # the standard errors' Jacobian at the end is of these shapes: compiled now, on
+        # the background thread, while the hops and repeats run programs already made
+        compile_errors_ahead(self.model.with_values(state.values), list(state.datas),
+                             state.values)
 
     def value(self, state: _State, name: str) -> float:
         return state.values[name]

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._ahead import Ahead
 from .._lm import LMStepper, normal_covariance, with_batched_jacobian
 from .._param import step_map
 from .._progress import moved_most, step_bar
@@ -405,12 +406,10 @@ def _linearised(stepper, sol, free, lin, values_of):
     return jac_r
 
 
-def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
-              residual: bool = True):
-    """The residual's Jacobian over the free parameters (physical units) at ``values``,
-    a few columns at a time (:func:`difstar._lm.with_batched_jacobian`); with
-    ``residual``, also the residual and the model images (from the same program: the
-    linearisation's primal values)."""
+def _jacobian_program(model: ImageModel, data, values: Mapping[str, float], target,
+                      residual: bool):
+    """(program, x, args) of :func:`_jacobian`: the kept program (an :class:`Ahead`,
+    which may have been compiled ahead) and its arguments at ``values``."""
     free = model.free
     base = {k: jnp.asarray(v, float) for k, v in values.items()}
 
@@ -426,23 +425,42 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
 
         if not residual:
             batched = with_batched_jacobian(lambda x, a: res(x, a)[0])
-            return jax.jit(jax.jacfwd(batched), **solver_jit_options())
+            return Ahead(jax.jit(jax.jacfwd(batched), **solver_jit_options()))
         both = with_batched_jacobian(res)  # (residual, model images), one linearisation
 
         def with_values(x, a):  # the residual differentiated, both returned as they are
             out = both(x, a)
             return out[0], out
 
-        return jax.jit(jax.jacfwd(with_values, has_aux=True), **solver_jit_options())
+        return Ahead(jax.jit(jax.jacfwd(with_values, has_aux=True), **solver_jit_options()))
 
     key, keep = trace_key(model, _as_list(data), _as_list(target))
     jacobian = program(("jacobian", key, tuple(free), residual), make, keep)
     x0 = jnp.asarray([values[k] for k in free], float)
-    args = (base, [t.arrays for t in _as_list(target)])
+    return jacobian, x0, (base, [t.arrays for t in _as_list(target)])
+
+
+def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
+              residual: bool = True):
+    """The residual's Jacobian over the free parameters (physical units) at ``values``,
+    a few columns at a time (:func:`difstar._lm.with_batched_jacobian`); with
+    ``residual``, also the residual and the model images (from the same program: the
+    linearisation's primal values)."""
+    jacobian, x0, args = _jacobian_program(model, data, values, target, residual)
     if not residual:
         return np.asarray(jacobian(x0, args))
     jac, (r, m) = jacobian(x0, args)
     return np.asarray(jac), np.asarray(r), [np.asarray(mi) for mi in m]
+
+
+def compile_errors_ahead(model: ImageModel, data, values: Mapping[str, float]) -> None:
+    """Compile, on the background thread (:mod:`difstar._ahead`), the Jacobian that
+    :func:`_errors` of ``model`` on all pixels of ``data`` will run at values and σ of
+    these shapes: a fit's standard errors at its end then wait for no compile (3–4 s on
+    the automatic Spitzer fit) where its last stages gave the compile the time."""
+    target = [_PixelTarget(d) for d in _as_list(data)]
+    jacobian, x0, args = _jacobian_program(model, data, values, target, True)
+    jacobian.compile_ahead(x0, args)
 
 def _errors(model: ImageModel, data, values: Mapping[str, float], target=None, *,
             linearised=None):
