@@ -359,7 +359,7 @@ class ImageModel(ForwardModel):
         key = self._plan_key(shape, light, segment, margin, headroom)
         if not reuse:
             if key not in self._plans:
-                self._plans[key] = self._make_plan(shape, light, segment, key)
+                self._plans[key] = self._make_plan(shape, light, segment, dict(key[3]))
             return self._plans[key]
         in_use = ("in use",) + key
         if in_use not in self._plans:
@@ -383,9 +383,9 @@ class ImageModel(ForwardModel):
         coeffs = {j: c for j, c in coeffs.items() if c > 0}
         return (tuple(shape), tuple(light.wavelengths), segment, tuple(sorted(coeffs.items())))
 
-    def _make_plan(self, shape, light, segment, key):
-        """The plan of :meth:`plan`'s ``key`` (its last part: the Zernike coefficients)."""
-        coeffs = dict(key[3])
+    def _make_plan(self, shape, light, segment, coeffs):
+        """A new plan for ``shape``, ``light`` and the Zernike ``coeffs`` (m RMS by Noll
+        index; :meth:`_plan_key`'s last part)."""
         if not segment and self.has_incoherent:
             self.plan(shape, light, segment=True)
         ang = self._bound("pixel_scale", min) * ARCSEC
