@@ -311,6 +311,37 @@ def test_transformed_gradient_rotation_and_centre():
                                              rel=1e-5)
 
 
+def test_a_circle_on_the_axis_is_only_shifted_by_a_rotation():
+    """A circle built on the axis ignores the rotation (a disc about its own centre); one
+    built off the axis still has its centre rotated; a circle whose centre is a value
+    (not a built-in origin) rotates it too, even when that value is zero. The derivative
+    in the rotation of the obstructed pupil is its struts' alone: the same as with the
+    circles rotated, by finite differences."""
+    assert difstar.Circle(0.3).on_axis and not difstar.Circle(0.3, (0.1, 0.0)).on_axis
+    assert not difstar.Circle(0.3, jnp.zeros(2)).on_axis
+    moved = difstar.Circle(0.3).transformed(0.7, (0.1, -0.2))
+    np.testing.assert_allclose(moved.centre, [0.1, -0.2], atol=0)
+    assert not moved.on_axis
+    c, s = math.cos(0.7), math.sin(0.7)
+    off = difstar.Circle(0.3, (0.1, 0.0)).transformed(0.7)
+    np.testing.assert_allclose(off.centre, [0.1 * c, 0.1 * s], atol=1e-15)
+    np.testing.assert_allclose(moved.transformed(0.7).centre,
+                               [0.1 * c + 0.2 * s, 0.1 * s - 0.2 * c], atol=1e-15)
+    cell = 0.05
+    x, y = _grid(64, cell)
+    g = jax.random.normal(jax.random.PRNGKey(5), (64, 64), jnp.float64)
+
+    def f(rot):
+        pupil = Obstructed(difstar.Circle(1.2), difstar.Circle(0.4),
+                           Struts([0.3, 2.4, 4.5], 0.06))
+        return jnp.sum(pupil.transformed(rot).tiled_coverage(x, y, cell) * g)
+
+    rot = 0.2
+    slope = float(jax.jit(jax.grad(f))(rot))
+    fd = float((jax.jit(f)(rot + 1e-6) - jax.jit(f)(rot - 1e-6)) / 2e-6)
+    assert slope == pytest.approx(fd, rel=1e-5)
+
+
 # --- masks ---------------------------------------------------------------------------
 
 

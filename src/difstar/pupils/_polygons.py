@@ -145,10 +145,14 @@ class Circle(AbstractPupil):
 
     radius: Float[Array, ""]
     centre: Float[Array, "2"]
+    #: the centre is the origin by construction (not a value that may move): rotations
+    #: about the axis leave the circle as it is
+    on_axis: bool = eqx.field(static=True, default=False)
 
     def __init__(self, radius, centre=(0.0, 0.0)):
         self.radius = jnp.asarray(radius, dtype=jnp.result_type(float))
         self.centre = jnp.asarray(centre, dtype=jnp.result_type(float))
+        self.on_axis = _is_origin(centre)
         try:
             r = float(self.radius)
         except Exception:
@@ -163,5 +167,9 @@ class Circle(AbstractPupil):
         return self.radius + _safe_norm(self.centre[0], self.centre[1])
 
     def transformed(self, rotation=0.0, centre=(0.0, 0.0)) -> "Circle":
-        """The circle with its centre moved (exact: a disc is rotation invariant)."""
+        """The circle with its centre moved (exact: a disc is rotation invariant). A
+        circle built on the axis is only shifted: its derivative in the rotation, zero,
+        is then not traced at all."""
+        if self.on_axis:
+            return Circle(self.radius, centre)
         return Circle(self.radius, _rigid(self.centre, _float(rotation), _float(centre)))

@@ -161,7 +161,7 @@ def _cumulative_rows(a: Array) -> Array:
         return jax.lax.associative_scan(jnp.add, a, axis=0)
     return jnp.cumsum(a, axis=0)
 
-def _tiled_primal(v0, v1, x, y, cell):
+def _tiled_primal(v0, v1, x, y, cell, pieces=None):
     """:func:`outline_coverage` on cells that tile the plane, from the edges' cell pieces
     (:func:`_cell_pieces`) instead of every edge over every cell: O(e (W + H)) work and
     a cumulative sum over the rows, where the edge-by-edge raster costs e passes over
@@ -169,10 +169,11 @@ def _tiled_primal(v0, v1, x, y, cell):
 
     Green's term of a piece in cell (row, col), ∫ clamp(y − y_bottom, 0, cell) dx over
     the piece, is its mean height above the bottom of its own cell times its run in x,
-    the whole cell side for every cell of its column below it, and nothing above it."""
+    the whole cell side for every cell of its column below it, and nothing above it.
+    ``pieces``: :func:`_cell_pieces`' result where the caller has it already."""
     h, w = y.shape[0], x.shape[-1]
     _, sy = _axis(y)
-    lo, hi, row, col = _cell_pieces(v0, v1, x, y)
+    lo, hi, row, col = _cell_pieces(v0, v1, x, y) if pieces is None else pieces
     d = v1 - v0
     dtype = jnp.result_type(x, y, v0)
     cell = jnp.asarray(cell, dtype)
@@ -221,9 +222,10 @@ def tiled_outline_coverage(v0: Float[Array, "e 2"], v1: Float[Array, "e 2"], x: 
 def _tiled_outline_jvp(primals, tangents):
     v0, v1, x, y, cell = primals
     dv0, dv1, dx, dy, dcell = tangents
-    out = tiled_outline_coverage(v0, v1, x, y, cell)
+    pieces = _cell_pieces(v0, v1, x, y)  # one computation for the value and its tangent
+    out = _tiled_primal(v0, v1, x, y, cell, pieces)
     h, w = out.shape
-    lo, hi, row, col = _cell_pieces(v0, v1, x, y)
+    lo, hi, row, col = pieces
     inside, row, col = _on_grid(lo, hi, row, col, h, w)
     d = v1 - v0
     nx, ny = d[:, 1:], -d[:, :1]  # outward normal of a counter-clockwise outline, × length
