@@ -141,7 +141,12 @@ class RegularPolygon(AbstractPupil):
         return Polygon(_rigid(self.vertices, _float(rotation), _float(centre)))
 
 class Circle(AbstractPupil):
-    """Circular pupil of ``radius`` metres centred on the axis (or at ``centre``)."""
+    """Circular pupil of ``radius`` metres centred on the axis (or at ``centre``).
+
+    ``on_axis`` (static) is true for a circle built without a centre (or with a literal
+    ``(0, 0)``): :meth:`transformed` then only shifts it, and a rotation's derivative is
+    not traced through it. To move such a circle, build ``Circle(radius, centre)``
+    rather than replacing its ``centre`` leaf (``eqx.tree_at``), which keeps the flag."""
 
     radius: Float[Array, ""]
     centre: Float[Array, "2"]
