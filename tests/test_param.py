@@ -10,7 +10,7 @@ import pytest
 
 import difstar
 from difstar._design import IrisFamily
-from difstar._param import START_MARGIN, bound_map, bound_map_inverse
+from difstar._param import START_MARGIN, bound_map, bound_map_inverse, bound_map_slope
 from difstar.raw_fit import Param
 
 
@@ -37,6 +37,19 @@ def test_gradient_of_the_map_matches_finite_differences_and_is_finite_far_out():
     j = jax.jacfwd(lambda u: bound_map(u, np.zeros(3), np.array([1.0, 2.0, 4.0])))(
         jnp.zeros(3))
     np.testing.assert_allclose(np.diag(np.asarray(j)), [0.25, 0.5, 1.0], rtol=1e-14)
+
+
+def test_the_bound_maps_slope_in_numpy_is_its_derivative_and_never_overflows():
+    # independent truth: the logistic's derivative (hi − lo) e^−u / (1 + e^−u)², and
+    # JAX's own derivative of the map
+    g = jax.jit(jax.grad(lambda u: bound_map(u, -1.0, 3.0)))
+    for u in (-30.0, -3.0, 0.0, 2.5, 30.0):
+        want = 4.0 * np.exp(-u) / (1.0 + np.exp(-u)) ** 2
+        assert bound_map_slope(u, -1.0, 3.0) == pytest.approx(want, rel=1e-14)
+        assert bound_map_slope(u, -1.0, 3.0) == pytest.approx(float(g(u)), rel=1e-12)
+    with np.errstate(over="raise"):
+        assert bound_map_slope(-800.0, -1.0, 3.0) == 0.0
+        assert bound_map_slope(800.0, -1.0, 3.0) == 0.0
 
 
 @pytest.mark.parametrize("value, bounds", [

@@ -319,6 +319,8 @@ def test_a_circle_on_the_axis_is_only_shifted_by_a_rotation():
     circles rotated, by finite differences."""
     assert difstar.Circle(0.3).on_axis and not difstar.Circle(0.3, (0.1, 0.0)).on_axis
     assert not difstar.Circle(0.3, jnp.zeros(2)).on_axis
+    assert float(difstar.Circle(0.3).max_radius()) == pytest.approx(0.3, rel=1e-15)
+    assert float(difstar.Circle(0.3, (0.1, 0.0)).max_radius()) == pytest.approx(0.4, rel=1e-15)
     moved = difstar.Circle(0.3).transformed(0.7, (0.1, -0.2))
     np.testing.assert_allclose(moved.centre, [0.1, -0.2], atol=0)
     assert not moved.on_axis

@@ -16,7 +16,7 @@ import numpy as np
 
 from .._ahead import Ahead
 from .._lm import LMStepper, normal_covariance, with_batched_jacobian
-from .._param import step_map
+from .._param import bound_map_slope, step_map
 from .._progress import moved_most, step_bar
 from .._xla import solver_jit_options
 from ._centred import centred_psf, fine_factor, image_from_centred, optics_fixed
@@ -359,7 +359,7 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     key, keep = trace_key(model, datas, _as_list(target))
     stepper = program(("solve", key, tuple(free), tuple(p.bounds for p in params),
                        tuple(lin), psfs is not None), make, keep)
-    u0 = jnp.asarray([_to_u(p) for p in params], float)
+    u0 = np.asarray([_to_u(p) for p in params], float)  # NumPy: no eager operation
     with step_bar(label, max_steps) as progress:
         last = [np.asarray(u0)]
 
@@ -381,21 +381,23 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
               "max_steps": f"not converged: reached max_steps={max_steps}"}[sol.result]
     vals = {k: float(x) for k, x in values_of(sol.u, fixed, steps).items()}
     vals |= {k: float(x) for k, x in zip(lin, np.asarray(sol.aux))}  # at the answer
-    return vals, status, ok, sol.steps, 2.0 * sol.loss, _linearised(
-        stepper, sol, free, lin, lambda u: values_of(u, fixed, steps))
+    # each value's slope in the solver's own number at the answer: the maps of
+    # :func:`values_of`, differentiated in NumPy
+    slope = np.asarray([float(steps[k][1]) if k in steps
+                        else bound_map_slope(u, *map(float, p.bounds))
+                        for k, p, u in zip(free, params, np.asarray(sol.u))])
+    return vals, status, ok, sol.steps, 2.0 * sol.loss, _linearised(stepper, sol, lin,
+                                                                    slope)
 
 
-def _linearised(stepper, sol, free, lin, values_of):
+def _linearised(stepper, sol, lin, slope):
     """A function giving (J, r) at the answer in physical units from the solver's last
     linearisation (no Jacobian program compiled or run), where it holds every free
     parameter's column: not where flux and background were taken in closed form, nor
     where a bounded parameter ended on its bound (its map's slope 0 there); else None.
-    ``values_of``: the solver's map from its vector to the values (each parameter's
-    slope is that map's own derivative)."""
+    ``slope``: each free value's derivative in the solver's number at the answer."""
     if lin:
         return None
-    slope = np.diag(np.asarray(jax.jacfwd(
-        lambda u: jnp.stack([values_of(u)[k] for k in free]))(sol.u)))
     if not np.all(np.abs(slope) > 1e-12):
         return None
 
@@ -436,7 +438,7 @@ def _jacobian_program(model: ImageModel, data, values: Mapping[str, float], targ
 
     key, keep = trace_key(model, _as_list(data), _as_list(target))
     jacobian = program(("jacobian", key, tuple(free), residual), make, keep)
-    x0 = jnp.asarray([values[k] for k in free], float)
+    x0 = np.asarray([values[k] for k in free], float)
     return jacobian, x0, (base, [t.arrays for t in _as_list(target)])
 
 

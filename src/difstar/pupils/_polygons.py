@@ -169,6 +169,8 @@ class Circle(AbstractPupil):
         return disc_coverage(self.radius, self.centre[0], self.centre[1], x, y, cell)
 
     def max_radius(self):
+        if self.on_axis:
+            return self.radius
         return self.radius + _safe_norm(self.centre[0], self.centre[1])
 
     def transformed(self, rotation=0.0, centre=(0.0, 0.0)) -> "Circle":
