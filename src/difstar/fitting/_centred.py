@@ -23,9 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._psf import plan_psf
-from .._zernike import Zernike
-from ._params import _PITCH, ARCSEC
+from ._params import ARCSEC
 from ._programs import _light_key, program
 
 #: the parameters one PSF at the star's centre serves besides the layers' after the
@@ -65,8 +63,9 @@ def centred_psf(model, v: Mapping[str, Any], shape, light=None) -> np.ndarray:
     hp, wp = model.padded_shape(shape)
     q = fine_factor(model, light)
     fine = (hp * q, wp * q)
-    v = {k: jnp.asarray(x, float) for k, x in {**v, "x0": 0.0, "y0": 0.0}.items()}
-    plans = _centred_plans(model, v, light, fine, q)
+    v = {k: float(x) for k, x in {**v, "x0": 0.0, "y0": 0.0}.items()}
+    plans = model.point_plans(v, light, fine, q)  # on Python numbers: no eager operation
+    v = {k: jnp.asarray(x, float) for k, x in v.items()}
     # one compiled program (kept), not the pupil's and the wavefront's operations one
     # at a time (about 20 small programs compiled on a first run) and then the PSF's
     run = program(("centred psf", model.trace_key(), fine, q, _light_key(light), plans),
@@ -74,24 +73,6 @@ def centred_psf(model, v: Mapping[str, Any], shape, light=None) -> np.ndarray:
                                                             plans=plans, shift=False)),
                   (model.plan_cache,))
     return np.asarray(run(v)) * q * q
-
-
-def _centred_plans(model, v: Mapping[str, Any], light, fine: tuple[int, int], q: int):
-    """(whole pupil's plan, one segment's or None) for :func:`centred_psf`'s point samples
-    at the concrete values ``v``: what :func:`difstar.psf` plans for them (the Zernike
-    terms at their values, the model's accuracy)."""
-    ang = float(v["pixel_scale"]) * ARCSEC
-    grid = dict(wavelength=np.asarray(light.wavelengths), z_image=_PITCH / ang,
-                pixel_pitch=_PITCH / q, shape=tuple(fine), sampling="point",
-                accuracy=model.accuracy)
-    zern = None
-    if model.zernike:
-        zern = Zernike({j: 1e-9 * float(v[f"z{j}"]) for j in model.zernike},
-                       float(model.pupil.max_radius))
-    whole = plan_psf(model.concrete_pupil(v), wavefront=zern, **grid)
-    seg = (plan_psf(model.concrete_pupil(v, segment=True), **grid)
-           if model.has_incoherent else None)
-    return whole, seg
 
 
 def image_from_centred(model, v: Mapping[str, Any], shape, centred, q: int,

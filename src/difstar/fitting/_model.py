@@ -464,32 +464,47 @@ class ImageModel(ForwardModel):
             img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
         return self.read_out(img, v, shape, exposure)
 
+    def _wavefront_and_grid(self, v, light: Light, fine_shape, q: int):
+        """The Zernike wavefront at values ``v`` (None without terms) and the window's
+        grid for :func:`difstar.psf`, as :meth:`optics` and :meth:`point_plans` use them."""
+        ang = v["pixel_scale"] * ARCSEC  # radians per data pixel
+        zern = None
+        if self.zernike:
+            zern = Zernike({j: 1e-9 * v[f"z{j}"] for j in self.zernike},
+                           float(self.pupil.max_radius))
+        grid = dict(wavelength=np.asarray(light.wavelengths), z_image=_PITCH / ang,
+                    pixel_pitch=_PITCH / q, shape=tuple(fine_shape))
+        return zern, grid
+
+    def point_plans(self, v: Mapping[str, Any], light: Light, fine_shape, q: int):
+        """(whole pupil's plan, one segment's or None) of :meth:`optics` without a shift,
+        as :func:`difstar.psf` plans point samples at the concrete values ``v`` (the
+        Zernike terms at their values, the model's accuracy)."""
+        zern, grid = self._wavefront_and_grid(v, light, fine_shape, q)
+        grid.update(sampling="point", accuracy=self.accuracy)
+        whole = plan_psf(self.concrete_pupil(v), wavefront=zern, **grid)
+        seg = (plan_psf(self.concrete_pupil(v, segment=True), **grid)
+               if self.has_incoherent else None)
+        return whole, seg
+
     def optics(self, v: Mapping[str, Any], light: Light, fine_shape: tuple[int, int], q: int,
-               *, plans=None, shift: bool = True):
+               *, plans, shift: bool = True):
         """The star's PSF on the ``fine_shape`` window sampled ``q`` times a data pixel a
         side (fraction of the power per sample), for the optics at values ``v``, the
         segments' incoherent part mixed in: the one place the model's pupil, wavefront
         and light become a PSF (:meth:`image`, and the centred PSF of a stage that holds
         the optics). ``plans``: (the whole pupil's, one segment's or None), as
-        :meth:`plan` makes them; None: planned by :func:`difstar.psf` at these (concrete)
-        values, point samples. ``shift``: moved by (``x0``, ``y0``) as a wavefront tilt."""
-        ang = v["pixel_scale"] * ARCSEC  # radians per data pixel
-        zern = None
-        if self.zernike:
-            r = float(self.pupil.max_radius)
-            zern = Zernike({j: 1e-9 * v[f"z{j}"] for j in self.zernike}, r)
+        :meth:`plan` or :meth:`point_plans` make them. ``shift``: moved by (``x0``,
+        ``y0``) as a wavefront tilt."""
+        zern, grid = self._wavefront_and_grid(v, light, fine_shape, q)
+        grid["weights"] = np.asarray(light.weights)
         whole_wf, seg_wf = zern, None
         if shift:
             # a shift by (x0 columns right, y0 rows down) data pixels is a tilt of the
             # wavefront: the field's phase exp(i k W) with W = −θ·x moves the image by +θ
+            ang = v["pixel_scale"] * ARCSEC
             tx, ty = -v["x0"] * ang, v["y0"] * ang
             whole_wf, seg_wf = Shifted(zern, tx, ty), Shifted(None, tx, ty)
-        grid = dict(wavelength=np.asarray(light.wavelengths),
-                    weights=np.asarray(light.weights), z_image=_PITCH / ang,
-                    pixel_pitch=_PITCH / q, shape=tuple(fine_shape))
-        if plans is None:
-            plans = (None, None)
-            grid.update(sampling="point", accuracy=self.accuracy)
         img = psf(self._pupil_at(v), plan=plans[0], wavefront=whole_wf, **grid)
         if self.has_incoherent:
             # random phasing errors of RMS φ between segments: the mean image is
