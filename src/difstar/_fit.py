@@ -488,20 +488,26 @@ class Fitter:
         return {"data": data, "image": images, "u_ref": jnp.asarray(u),
                 "index": jnp.asarray(sensor_index(self.model, channel))}
 
+    @staticmethod
+    def _sensor_start(u, args) -> np.ndarray:
+        # NumPy: an eager gather would compile an operation of its own
+        return np.asarray(u)[np.asarray(args["index"])]
+
     def sensor_loss(self, u, args) -> float:
         """The loss at ``u`` with the optics held (``args`` from :meth:`sensor_args`)."""
-        r = jax.tree_util.tree_leaves(self._sensor_fn(jnp.asarray(u)[args["index"]], args))
-        return float(sum(0.5 * jnp.sum(v * v) for v in r))
+        r = jax.tree_util.tree_leaves(self._sensor_fn(self._sensor_start(u, args), args))
+        return float(sum(0.5 * np.sum(np.square(np.asarray(v))) for v in r))
 
     def solve_sensor(self, u0, args, *, max_steps: int = 100, ftol: float = 1e-6
                      ) -> SolveResult:
         """Solve for one channel's sensor parameters alone from ``u0``, the optics held
         (``args`` from :meth:`sensor_args`); each step costs the sensor, not the PSF.
         The result's ``u`` is the whole vector."""
-        index = args["index"]
-        res = self._sensor_lm.solve(jnp.asarray(u0)[index], args, max_steps=max_steps,
-                                    ftol=ftol)
-        return dataclasses.replace(res, u=args["u_ref"].at[index].set(res.u), state=None)
+        res = self._sensor_lm.solve(self._sensor_start(u0, args), args,
+                                    max_steps=max_steps, ftol=ftol)
+        u = np.array(args["u_ref"])
+        u[np.asarray(args["index"])] = np.asarray(res.u)
+        return dataclasses.replace(res, u=jnp.asarray(u), state=None)
 
     def covariance(self, u, args, solved: SolveResult | None = None):
         """Gauss–Newton covariance of the free parameters at ``u``.

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import numpy as np
 
 from ._fit import zernike_index
@@ -91,10 +92,11 @@ def response_error(x_fit: dict, x_true: dict, h_range: tuple[float, float], *, n
     """Max |ζ_fit(H) − ζ_true(H)| per channel over physical exposures H = C·t in
     ``h_range`` (log-spaced), as a fraction of the true curve's range there."""
     h = np.geomspace(max(h_range[0], 1e-12), h_range[1], n)
+    curve = jax.jit(response_curve)  # one program, not each operation compiled eagerly
     out = []
     for c in range(3):
-        zt = np.asarray(response_curve(h / x_true["phi0"][c], x_true["toe"][c], x_true["knee"][c]))
-        zf = np.asarray(response_curve(h / x_fit["phi0"][c], x_fit["toe"][c], x_fit["knee"][c]))
+        zt = np.asarray(curve(h / x_true["phi0"][c], x_true["toe"][c], x_true["knee"][c]))
+        zf = np.asarray(curve(h / x_fit["phi0"][c], x_fit["toe"][c], x_fit["knee"][c]))
         rng = zt.max() - zt.min()
         out.append(float(np.max(np.abs(zf - zt)) / max(rng, 1e-12)))
     return np.asarray(out)

@@ -74,13 +74,14 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
     rows = []
     for cfg in model.configs:
         p = pred[cfg.name]
+        cfa = np.asarray(p.cfa)  # NumPy: eager slices of it would each compile
         for i, c in enumerate(model.captures_of(cfg.name)):
             obs = caps[c.name]["zeta"]
             sat = caps[c.name]["saturated"]
-            pc = np.asarray(p.cfa[i])
-            sig = np.asarray(noise_sigma(pc, gain_e_per_dn=noise["gain_e_per_dn"],
-                                         read_noise_dn=noise["read_noise_dn"],
-                                         full_scale_dn=caps[c.name]["full_scale_dn"]))
+            pc = cfa[i]
+            sig = noise_sigma(pc, gain_e_per_dn=noise["gain_e_per_dn"],
+                              read_noise_dn=noise["read_noise_dn"],
+                              full_scale_dn=caps[c.name]["full_scale_dn"], xp=np)
             shown = (np.log10(np.clip(obs, 1e-4, 1)), np.log10(np.clip(pc, 1e-4, 1)),
                      np.where(sat, np.nan, (pc - obs) / sig))
             if panels is None:  # one figure for every capture: only its pixels change
@@ -119,7 +120,7 @@ def write_outputs(tmp: Path, result: dict, model, caps, fitter, u, noise) -> lis
         c = capl[i]
         obs_rgb = np.asarray(demosaic_once(jnp.asarray(caps[c.name]["zeta"]), cc.pattern,
                                            method="bilinear"))
-        pz = np.asarray(p.zeta[i])
+        pz = pz_all[i]
         h, w = pz.shape[-2:]
         r0 = h // 2 + c.base_offset[0]
         c0 = w // 2 + c.base_offset[1]
