@@ -49,7 +49,7 @@ from ._model import (
     geometry_of as geometry_of,
 )
 from ._otf import otf
-from ._psf import psf
+from ._psf import psf, psf_each
 from ._psf_engine import SamplingError as SamplingError
 from ._pupil import Polygon, RegularPolygon
 from ._radiometry import radiometry
@@ -204,6 +204,27 @@ def _exact_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
                          oversample=1)  # at the pixel centres (see simulate)
 
 
+def _channel_psf(camera: Camera, g: Geometry, grid: Grid, c: int, pitch, shape):
+    """Channel ``c``'s PSF on ``shape`` at ``pitch``: weighted over its wavelengths in the
+    spectral model; the closed form's fast form where the plan is exact at the pixel
+    centres."""
+    sen = camera.sensor
+    lam = sen.wavelengths[c]
+    wts = None if sen.spectral_weights is None else sen.spectral_weights[c]
+    if grid.psf_plan.method == "exact" and grid.psf_plan.nodes == 1:
+        # the closed form's fast form (half-plane, hand-written gradient) for all of
+        # the channel's wavelengths at once
+        lams = lam.reshape(-1)
+        inten, scale = polygon_intensities(camera.lens.pupil.vertices, list(lams),
+                                           z_image=g.z_exit_pupil, pixel_pitch=pitch,
+                                           shape=shape)
+        wv = jnp.ones_like(lams) if wts is None else wts.reshape(-1)
+        return jnp.einsum("l,lhw->hw", wv * scale / jnp.sum(wv), inten)
+    return psf(camera.lens.pupil, wavelength=lam, weights=wts, z_image=g.z_exit_pupil,
+               defocus=g.defocus, pixel_pitch=pitch, shape=shape,
+               wavefront=camera.lens.wavefront, scaling=grid.scaling, plan=grid.psf_plan)
+
+
 def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
     """Linear image and PSFs through :func:`difstar.psf`'s engine: each channel's PSF at
     the sample centres on exactly the offsets the crop needs (nothing folded in), weighted
@@ -244,23 +265,17 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
         b_ft = b_ft * sen.blur.transfer(fx, fy)[None]
     fh0, fw0 = engine_fine_crop(grid.crop, q)
     i0, j0 = kh // 2 - fh0 // 2, kw // 2 - fw0 // 2  # the crop within the PSF's offsets
+    if grid.psf_plan.method != "exact" and sen.spectral_weights is None:
+        # one wavelength a channel: the three sampled pupils made at once
+        ps = psf_each(camera.lens.pupil, sen.wavelengths, z_image=g.z_exit_pupil,
+                      defocus=g.defocus, pixel_pitch=pitch, shape=(kh, kw),
+                      wavefront=camera.lens.wavefront, scaling=grid.scaling,
+                      plan=grid.psf_plan)
+    else:
+        ps = [_channel_psf(camera, g, grid, c, pitch, (kh, kw)) for c in range(3)]
     psfs, imgs = [], []
     for c in range(3):
-        lam = sen.wavelengths[c]
-        wts = None if sen.spectral_weights is None else sen.spectral_weights[c]
-        if grid.psf_plan.method == "exact" and grid.psf_plan.nodes == 1:
-            # the closed form's fast form (half-plane, hand-written gradient) for all of
-            # the channel's wavelengths at once
-            lams = lam.reshape(-1)
-            inten, scale = polygon_intensities(camera.lens.pupil.vertices, list(lams),
-                                               z_image=g.z_exit_pupil,
-                                               pixel_pitch=pitch, shape=(kh, kw))
-            wv = jnp.ones_like(lams) if wts is None else wts.reshape(-1)
-            p = jnp.einsum("l,lhw->hw", wv * scale / jnp.sum(wv), inten)
-        else:
-            p = psf(camera.lens.pupil, wavelength=lam, weights=wts, z_image=g.z_exit_pupil,
-                    defocus=g.defocus, pixel_pitch=pitch, shape=(kh, kw),
-                    wavefront=camera.lens.wavefront, scaling=grid.scaling, plan=grid.psf_plan)
+        p = ps[c]
         full = jnp.fft.irfft2(jnp.fft.rfft2(p, s=(nh, nw)) * b_ft[c], s=(nh, nw))
         imgs.append(bin_pixels(full[r0 : r0 + h * q, c0 : c0 + wc * q], q) / (q * q))
         psfs.append(bin_pixels(p[i0 : i0 + h * q, j0 : j0 + wc * q], q))

@@ -21,6 +21,7 @@ from ._psf_engine import (
     SamplingError,
     defocus_blur,
     evaluate,
+    evaluate_each,
 )
 from ._psf_engine import plan_psf as plan_window
 from ._pupil import AbstractPupil, Polygon, RegularPolygon
@@ -362,21 +363,46 @@ def psf(
                         pixel_pitch=pixel_pitch, shape=(h, w), sampling=sampling,
                         accuracy=accuracy, wavefront=wavefront, scaling=scaling,
                         method=method)
-    elif not isinstance(plan, PSFPlan):
-        raise TypeError(f"difstar.psf: plan must be a PSFPlan from difstar.plan_psf; got "
-                        f"{type(plan).__name__}.")
-    else:  # a plan made for another window or wavelengths: its cost here, before any work
-        edges = _check_output_memory(pupil, (h, w), n_lam)
-        if plan.method == "exact" and edges > MAX_EXACT_EDGES:
-            raise InputError(
-                f"difstar.psf: plan.method 'exact' with {edges} edges; the closed form takes "
-                f"at most {MAX_EXACT_EDGES}; make the plan with difstar.plan_psf for this "
-                "pupil (it samples the pupil instead).")
-        check_memory_of(plan, (h, w), n_lam, edges, float(pixel_pitch))
-        _check_plan_period(plan, pupil, (h, w), float(pixel_pitch), z_image, defocus)
+    else:
+        _check_given_plan(plan, pupil, (h, w), n_lam, pixel_pitch, z_image, defocus)
     lam, wts = _wavelengths_and_weights(wavelength, weights)
     return _evaluate_all(pupil, lam, wts, z_image, defocus, wavefront, plan=plan,
                          shape=(h, w), pixel_pitch=float(pixel_pitch), scaling=scaling)
+
+
+def _check_given_plan(plan, pupil, shape, n_lam: int, pixel_pitch, z_image, defocus) -> None:
+    """A plan given to :func:`psf` (or :func:`psf_each`), made for another window or
+    wavelengths: its type, and its cost and period here, before any work."""
+    if not isinstance(plan, PSFPlan):
+        raise TypeError(f"difstar.psf: plan must be a PSFPlan from difstar.plan_psf; got "
+                        f"{type(plan).__name__}.")
+    edges = _check_output_memory(pupil, shape, n_lam)
+    if plan.method == "exact" and edges > MAX_EXACT_EDGES:
+        raise InputError(
+            f"difstar.psf: plan.method 'exact' with {edges} edges; the closed form takes "
+            f"at most {MAX_EXACT_EDGES}; make the plan with difstar.plan_psf for this "
+            "pupil (it samples the pupil instead).")
+    check_memory_of(plan, shape, n_lam, edges, float(pixel_pitch))
+    _check_plan_period(plan, pupil, shape, float(pixel_pitch), z_image, defocus)
+
+
+def psf_each(pupil: AbstractPupil, wavelengths, *, z_image, defocus=0.0, pixel_pitch,
+             shape, plan: PSFPlan, wavefront=None, scaling: str = "fresnel"):
+    """The window of each wavelength of ``wavelengths`` (C,), (C, h, w): each the window
+    ``psf(pupil, wavelength=wavelengths[c], ..., plan=plan)`` gives, not weighted
+    together. The sampled pupils of all wavelengths are made at once (its raster's many
+    small operations traced and compiled once, not C times: the simulation's colour
+    channels, a fit's Jacobian), then each wavelength's transform. ``plan`` is required
+    and checked as :func:`psf` checks a given plan."""
+    h, w = _check_shape(shape)
+    lam = jnp.asarray(wavelengths, dtype=jax.dtypes.canonicalize_dtype(np.float64))
+    if lam.ndim != 1 or lam.size < 1:
+        raise ValueError(f"difstar.psf_each: wavelengths must be a 1-D array; got shape "
+                         f"{lam.shape}.")
+    _check_given_plan(plan, pupil, (h, w), int(lam.size), pixel_pitch, z_image, defocus)
+    return evaluate_each(pupil, lam, z_image=z_image, defocus=defocus,
+                         pixel_pitch=float(pixel_pitch), shape=(h, w), scaling=scaling,
+                         wavefront=wavefront, plan=plan)
 
 
 def _check_plan_period(plan: PSFPlan, pupil, shape, pixel_pitch: float, z_image,

@@ -330,11 +330,17 @@ def _fraction_of_power(inten: Array, energy, *, pixel_pitch, shape, plan: PSFPla
 def mft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, shape,
                scaling, plan: PSFPlan) -> Array:
     """Fraction of power per pixel by a matrix DFT from the sampled pupil (see module)."""
+    amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
+    return _mft_transform(amp, energy, pixel_pitch=pixel_pitch, shape=shape, plan=plan)
+
+
+def _mft_transform(amp, energy, *, pixel_pitch, shape, plan: PSFPlan) -> Array:
+    """:func:`mft_window` from the pupil's sampled transfer ``amp`` and its ``energy``
+    (:func:`_subcell_atf`)."""
     h, w = shape
     m = plan.pupil_window
     L = plan.period
     df = 1.0 / L
-    amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
     f = _cell_centres(m, df)
     x = _offsets(w, plan.nodes) * pixel_pitch  # metres
     y = -_offsets(h, plan.nodes) * pixel_pitch  # rows run along −y
@@ -400,12 +406,18 @@ def fft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, s
     offset by half a sample change the field only by a unimodular factor), along the
     pupil's rows first, keeping the window's columns, then along those columns, keeping
     its rows. Sub-pixel nodes shift the output by phase ramps on the pupil."""
+    amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
+    return _fft_transform(amp, energy, pixel_pitch=pixel_pitch, shape=shape, plan=plan)
+
+
+def _fft_transform(amp, energy, *, pixel_pitch, shape, plan: PSFPlan) -> Array:
+    """:func:`fft_window` from the pupil's sampled transfer ``amp`` and its ``energy``
+    (:func:`_subcell_atf`)."""
     h, w = shape
     m = plan.pupil_window
     L = plan.period
     n = int(round(L / pixel_pitch))
     df = 1.0 / L
-    amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
     f = _cell_centres(m, df)
     xg = _node_positions(plan.nodes)
     k = len(xg)
@@ -451,3 +463,20 @@ def evaluate(pupil, wavelength, *, z_image, defocus, pixel_pitch, shape, scaling
     window = fft_window if plan.method == "fft" else mft_window
     return window(pupil, wavefront, wavelength, z_image=z_image, defocus=defocus,
                   pixel_pitch=pixel_pitch, shape=shape, scaling=scaling, plan=plan)
+
+
+def evaluate_each(pupil, wavelengths, *, z_image, defocus, pixel_pitch, shape, scaling,
+                  wavefront, plan: PSFPlan) -> Float[Array, "c h w"]:
+    """One window per wavelength of ``wavelengths`` (C,), each as :func:`evaluate` gives
+    it (not weighted together). The sampled pupil of every wavelength is made at once (the
+    raster vmapped over the wavelengths: one trace and one compiled body of its many small
+    operations instead of C), then each wavelength's transform."""
+    if plan.method == "exact":
+        return jnp.stack([evaluate(pupil, lam, z_image=z_image, defocus=defocus,
+                                   pixel_pitch=pixel_pitch, shape=shape, scaling=scaling,
+                                   wavefront=wavefront, plan=plan) for lam in wavelengths])
+    amps, energies = jax.vmap(lambda lam: _subcell_atf(pupil, wavefront, lam, z_image,
+                                                       defocus, scaling, plan))(wavelengths)
+    transform = _fft_transform if plan.method == "fft" else _mft_transform
+    return jnp.stack([transform(amps[c], energies[c], pixel_pitch=pixel_pitch, shape=shape,
+                                plan=plan) for c in range(wavelengths.shape[0])])
