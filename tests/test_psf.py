@@ -406,3 +406,24 @@ def test_psf_each_gives_each_wavelengths_psf(method):
                  shape=(n, n), plan=None)
     with pytest.raises(ValueError, match="wavelengths must be a 1-D array"):
         psf_each(difstar.Circle(r), lams[None], defocus=dz, **kw)
+
+
+def test_psf_each_counts_every_sampled_pupil_in_its_memory_check(monkeypatch):
+    """``psf_each`` holds every wavelength's sampled pupil at once (``psf`` one at a
+    time): a memory limit between the two refuses ``psf_each`` before any work, with the
+    window named, and lets ``psf`` run."""
+    from difstar._psf import psf_bytes, psf_each
+    from difstar._validate import InputError
+
+    lams = jnp.asarray([600e-9, 530e-9, 450e-9])
+    r, n = F / 11, 40
+    plan = difstar.plan_psf(difstar.Circle(r), wavelength=lams, z_image=F, defocus=1e-4,
+                            pixel_pitch=P, shape=(n, n), sampling="point", method="fft")
+    one = psf_bytes(plan, (n, n), 3, 0, P)
+    each = psf_bytes(plan, (n, n), 3, 0, P, pupils=3)
+    assert each > one
+    monkeypatch.setenv("DIFSTAR_MEMORY_LIMIT", str((one + each) // 2))
+    kw = dict(z_image=F, defocus=1e-4, pixel_pitch=P, shape=(n, n), plan=plan)
+    difstar.psf(difstar.Circle(r), wavelength=lams, **kw)
+    with pytest.raises(InputError, match="40 x 40 px window"):
+        psf_each(difstar.Circle(r), lams, **kw)

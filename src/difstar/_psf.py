@@ -201,11 +201,13 @@ def _check_output_memory(pupil, shape, n_lam) -> int:
     return _edges(pupil)
 
 
-def psf_bytes(plan: PSFPlan, shape, n_wavelengths: int, edges: int, pixel_pitch: float) -> int:
+def psf_bytes(plan: PSFPlan, shape, n_wavelengths: int, edges: int, pixel_pitch: float,
+              pupils: int = 1) -> int:
     """Lower estimate of the bytes :func:`psf` holds at once for this plan: the stacked
     windows of every wavelength, and one wavelength's working arrays: the closed form's
     plane pair per vertex (``_mft._edge_sum`` holds them together), or the sampled
-    pupil (× its sub-cells) and the transform's matrices or FFT passes."""
+    pupil (× its sub-cells; ``pupils`` of them at once, :func:`psf_each`) and the
+    transform's matrices or FFT passes."""
     r, c = _bytes(), _bytes(real=False)
     h, w = shape
     nodes = plan.nodes
@@ -214,7 +216,7 @@ def psf_bytes(plan: PSFPlan, shape, n_wavelengths: int, edges: int, pixel_pitch:
     if plan.method == "exact":
         return need + pts * r * 2 * max(int(edges), 3)
     m = plan.pupil_window
-    need += (m * plan.subcells) ** 2 * (3 * r + c) + m * m * c
+    need += pupils * ((m * plan.subcells) ** 2 * (3 * r + c) + m * m * c)
     if plan.method == "mft":
         return need + pts * c + m * (h + w) * nodes * c + m * min(h, w) * nodes * c
     n = max(1, round(plan.period / pixel_pitch))
@@ -224,10 +226,10 @@ def psf_bytes(plan: PSFPlan, shape, n_wavelengths: int, edges: int, pixel_pitch:
 
 
 def check_memory_of(plan: PSFPlan, shape, n_wavelengths: int, edges: int,
-                    pixel_pitch: float) -> None:
+                    pixel_pitch: float, pupils: int = 1) -> None:
     """:class:`~difstar._validate.InputError` when :func:`psf_bytes` exceeds the memory
     budget (``DIFSTAR_MEMORY_LIMIT``, else the device's or the machine's memory)."""
-    need = psf_bytes(plan, shape, n_wavelengths, edges, pixel_pitch)
+    need = psf_bytes(plan, shape, n_wavelengths, edges, pixel_pitch, pupils)
     budget = memory_budget()
     if need <= budget:
         return
@@ -370,9 +372,11 @@ def psf(
                          shape=(h, w), pixel_pitch=float(pixel_pitch), scaling=scaling)
 
 
-def _check_given_plan(plan, pupil, shape, n_lam: int, pixel_pitch, z_image, defocus) -> None:
-    """A plan given to :func:`psf` (or :func:`psf_each`), made for another window or
-    wavelengths: its type, and its cost and period here, before any work."""
+def _check_given_plan(plan, pupil, shape, n_lam: int, pixel_pitch, z_image, defocus,
+                      pupils: int = 1) -> None:
+    """A plan given to :func:`psf` (or :func:`psf_each`, ``pupils`` sampled at once),
+    made for another window or wavelengths: its type, and its cost and period here,
+    before any work."""
     if not isinstance(plan, PSFPlan):
         raise TypeError(f"difstar.psf: plan must be a PSFPlan from difstar.plan_psf; got "
                         f"{type(plan).__name__}.")
@@ -382,7 +386,7 @@ def _check_given_plan(plan, pupil, shape, n_lam: int, pixel_pitch, z_image, defo
             f"difstar.psf: plan.method 'exact' with {edges} edges; the closed form takes "
             f"at most {MAX_EXACT_EDGES}; make the plan with difstar.plan_psf for this "
             "pupil (it samples the pupil instead).")
-    check_memory_of(plan, shape, n_lam, edges, float(pixel_pitch))
+    check_memory_of(plan, shape, n_lam, edges, float(pixel_pitch), pupils)
     _check_plan_period(plan, pupil, shape, float(pixel_pitch), z_image, defocus)
 
 
@@ -399,7 +403,8 @@ def psf_each(pupil: AbstractPupil, wavelengths, *, z_image, defocus=0.0, pixel_p
     if lam.ndim != 1 or lam.size < 1:
         raise ValueError(f"difstar.psf_each: wavelengths must be a 1-D array; got shape "
                          f"{lam.shape}.")
-    _check_given_plan(plan, pupil, (h, w), int(lam.size), pixel_pitch, z_image, defocus)
+    n = int(lam.size)
+    _check_given_plan(plan, pupil, (h, w), n, pixel_pitch, z_image, defocus, pupils=n)
     return evaluate_each(pupil, lam, z_image=z_image, defocus=defocus,
                          pixel_pitch=float(pixel_pitch), shape=(h, w), scaling=scaling,
                          wavefront=wavefront, plan=plan)
