@@ -10,7 +10,11 @@ as ``difstar fit`` does, and times (best of ``--repeats``, after compiling):
 - the dense linear algebra of one damped step (QR of the Jacobian, numpy);
 - one whole solver step (``Fitter._step``: what ``difstar fit`` runs per iteration);
 
-and prints a Markdown table with each part's share of the step.
+and prints a Markdown table with each part's share of the step. Then the size of what a
+first run compiles and how long it takes (no compilation cache): the chain's equations
+(``jax.make_jaxpr``, counted through every nested jaxpr) for the residuals and for
+their linearisation, and the solver step's trace and lowering, and its XLA compile in
+wall-clock and CPU seconds (a compile uses more than one core).
 """
 
 from __future__ import annotations
@@ -39,6 +43,43 @@ def _best(fn, repeats: int) -> tuple[float, float]:
     return first, best
 
 
+def _equations(jaxpr) -> int:
+    """Equations of ``jaxpr`` and of every jaxpr nested in its equations' parameters."""
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += 1
+        for v in eqn.params.values():
+            for sub in v if isinstance(v, (tuple, list)) else (v,):
+                if hasattr(sub, "eqns") or hasattr(getattr(sub, "jaxpr", None), "eqns"):
+                    n += _equations(sub)
+    return n
+
+
+def _program_sizes(fitter, u, args) -> list[str]:
+    """The first run's compile, on a Fitter that has compiled nothing yet: the solver's
+    first state (its trace is the chain's linearisation's), the step's trace and
+    lowering, its XLA compile; then the chain's equations."""
+    lm = fitter._lm
+    sol = lm.solver()
+    t0 = time.perf_counter()
+    state = lm._init_with(sol, u, args)
+    t_init = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    lowered = lm._step_with.jitted.lower(sol, u, state, args)
+    t_lower = time.perf_counter() - t0
+    t0, c0 = time.perf_counter(), time.process_time()
+    lowered.compile()
+    t_xla, c_xla = time.perf_counter() - t0, time.process_time() - c0
+    fn = fitter._fn
+    primal = _equations(jax.make_jaxpr(lambda v: fn(v, args))(u))
+    lin = _equations(jax.make_jaxpr(lambda v: jax.linearize(lambda w: fn(w, args), v)[0])(u))
+    return [f"- the chain's equations: {primal} (residuals), {lin} (their linearisation)",
+            f"- the solver's first state (the chain's linearisation traced): {t_init:.2f} s; "
+            f"the step traced and lowered: {t_lower:.2f} s; XLA compiled it in "
+            f"{t_xla:.2f} s wall, {c_xla:.2f} s CPU"]
+
+
 def main(argv=None) -> int:
     from difstar.raw_fit import (
         Fitter,
@@ -64,6 +105,7 @@ def main(argv=None) -> int:
     args = make_args(model, observed_data(model, caps, man.noise), u)
     n_res = sum(int(np.prod(caps[c.name]["crop"])) for c in model.captures)
 
+    sizes = _program_sizes(Fitter(model, method=man.solver["method"]), u, args)
     rows = []
     c_res, t_res = _best(lambda: fitter._flat(u, args), a.repeats)
     rows.append(("residuals (forward model, all captures)", c_res, t_res))
@@ -86,6 +128,8 @@ def main(argv=None) -> int:
     for name, first, best in rows:
         share = best / t_step
         print(f"| {name} | {first:.2f} | {best:.3f} | {share * 100:.0f} % |")
+    print("\nWhat a first run compiles (no compilation cache):")
+    print("\n".join(sizes))
     return 0
 
 
