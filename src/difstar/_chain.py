@@ -266,7 +266,7 @@ def _engine_image(camera: Camera, scene: Scene, grid: Grid, g: Geometry):
     fh0, fw0 = engine_fine_crop(grid.crop, q)
     i0, j0 = kh // 2 - fh0 // 2, kw // 2 - fw0 // 2  # the crop within the PSF's offsets
     if grid.psf_plan.method != "exact" and sen.spectral_weights is None:
-        # one wavelength a channel: the three sampled pupils made at once
+        # one wavelength a channel: the pupil's coverage of the three grids made at once
         ps = psf_each(camera.lens.pupil, sen.wavelengths, z_image=g.z_exit_pupil,
                       defocus=g.defocus, pixel_pitch=pitch, shape=(kh, kw),
                       wavefront=camera.lens.wavefront, scaling=grid.scaling,

@@ -394,14 +394,14 @@ def psf_each(pupil: AbstractPupil, wavelengths, *, z_image, defocus=0.0, pixel_p
              shape, plan: PSFPlan, wavefront=None, scaling: str = "fresnel"):
     """The window of each wavelength of ``wavelengths`` (C,), (C, h, w): each the window
     ``psf(pupil, wavelength=wavelengths[c], ..., plan=plan)`` gives, not weighted
-    together. The sampled pupils of all wavelengths are made at once (its raster's many
-    small operations traced and compiled once, not C times: the simulation's colour
-    channels, a fit's Jacobian), then each wavelength's transform. ``plan`` is required
-    and checked as :func:`psf` checks a given plan."""
+    together. The pupil's coverage of every wavelength's grid is made at once (its
+    raster's many small operations traced and compiled once, not C times: the
+    simulation's colour channels, a fit's Jacobian), then each wavelength's phases and
+    transform. ``plan`` is required and checked as :func:`psf` checks a given plan."""
     h, w = _check_shape(shape)
     lam = jnp.asarray(wavelengths, dtype=jax.dtypes.canonicalize_dtype(np.float64))
     if lam.ndim != 1 or lam.size < 1:
-        raise ValueError(f"difstar.psf_each: wavelengths must be a 1-D array; got shape "
+        raise ValueError(f"psf_each: wavelengths must be a 1-D array; got shape "
                          f"{lam.shape}.")
     n = int(lam.size)
     _check_given_plan(plan, pupil, (h, w), n, pixel_pitch, z_image, defocus, pupils=n)
