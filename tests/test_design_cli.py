@@ -38,15 +38,17 @@ CHILD = textwrap.dedent('''
     import json, sys
     import jax, numpy as np
     jax.config.update("jax_enable_x64", True)
-    from difstar._design_study import measure, parse_sweep, study_setup, sweep_designs
+    from difstar._design_study import measurer, parse_sweep, study_setup, sweep_designs
     sweep = json.loads(sys.argv[1])
     designs = parse_sweep(sweep, blades=9)
     family, setup, opts = study_setup(blades=9, quick=True)
-    one = []  # one design at a time, the study's own measure()
+    # one design at a time, by the study's own measure (compiled once for all six)
+    measure_one = measurer(family, setup, opts)
+    one = []
     for i in range(len(designs)):
         d = designs[i]
         p = family.params(d["curvature"], radial=d["radial"], angular=d["angular"])
-        one.append(measure(family, setup, p, opts)[0])
+        one.append(measure_one(p)[0])
     out = {"devices": jax.device_count(), "n": len(designs)}
     for d in (1, 4):
         plans = []
@@ -246,7 +248,7 @@ def test_study_hands_lbfgsb_and_its_bounds_to_design(monkeypatch):
                                      history={"value": [1.0], "evaluations": [1]})
 
     monkeypatch.setattr(D, "design", recorder)
-    monkeypatch.setattr(S, "measure", lambda family, setup, p, opts: (
+    monkeypatch.setattr(S, "measurer", lambda family, setup, opts: lambda p: (
         {}, np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((3, 2))))
     r = S.iris_study(quick=True, steps=8, optimiser="lbfgsb", max_curvature=0.4,
                      vertex_bound=0.01, log=lambda m: None)
@@ -287,7 +289,7 @@ def test_study_progress_names_the_step_the_objective_and_what_moved(monkeypatch,
                                      history={"value": [1.0], "evaluations": [1]})
 
     monkeypatch.setattr(D, "design", stepping)
-    monkeypatch.setattr(S, "measure", lambda family, setup, p, opts: (
+    monkeypatch.setattr(S, "measurer", lambda family, setup, opts: lambda p: (
         {}, np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((3, 2))))
     S.iris_study(quick=True, steps=2, progress=True)
     err = capsys.readouterr().err

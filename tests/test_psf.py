@@ -173,11 +173,14 @@ def test_psf_jit_equals_nojit():
     assert float(jax.jit(_psf_fn)(*args)) == pytest.approx(float(_psf_fn(*args)), rel=1e-12)
 
 
-def _check_gradients(fn, dz):
+def _check_gradients(fn, dz, grad=None):
     """grad of ``fn(dz, rotation, size)`` finite and within 1e-4 of central differences
-    (steps 1e-6 m, 1e-6 rad, 1e-9 m); returns the gradients."""
+    (steps 1e-6 m, 1e-6 rad, 1e-9 m); returns the gradients. ``grad``: the compiled
+    ``jax.jit(jax.grad(fn, argnums=(0, 1, 2)))`` where the caller already has it."""
     args = [jnp.asarray(dz), jnp.asarray(0.2), jnp.asarray(R22)]
-    grads = jax.jit(jax.grad(fn, argnums=(0, 1, 2)))(*args)
+    if grad is None:
+        grad = jax.jit(jax.grad(fn, argnums=(0, 1, 2)))
+    grads = grad(*args)
     fn = jax.jit(fn)  # the differences: one compiled program, not op by op
     steps = (1e-6, 1e-6, 1e-9)
     for i, (g, eps) in enumerate(zip(grads, steps)):
@@ -215,10 +218,14 @@ def test_fft_passes_by_blocks_have_the_gradients(monkeypatch):
         w = jnp.linspace(0.0, 1.0, 30)
         return jnp.sum(p * (w[:, None] + 2 * w[None, :] ** 2))
 
+    # grad and jacfwd compiled once for both Δz (the same programs, given Δz as an
+    # array): made in the loop, each was traced and compiled again for the second
+    grad = jax.jit(jax.grad(f, argnums=(0, 1, 2)))
+    jacfwd = jax.jit(jax.jacfwd(f, argnums=(0, 1, 2)))
     for dz in (0.0, 0.3e-3):
-        args, grads = _check_gradients(f, dz)
+        args, grads = _check_gradients(f, dz, grad)
         assert float(jax.jit(f)(*args)) == pytest.approx(float(f(*args)), rel=1e-12)
-        forward = jax.jit(jax.jacfwd(f, argnums=(0, 1, 2)))(*args)
+        forward = jacfwd(*args)
         for fw, g in zip(forward, grads):
             assert float(fw) == pytest.approx(float(g), rel=1e-10, abs=1e-14)
 
@@ -327,8 +334,11 @@ def test_plain_call_plans_and_traces_once(monkeypatch, dz):
     assert len(plans) == 1 and len(traces) == 1
     turned = difstar.psf(difstar.RegularPolygon(7, R22, 0.3), **kw)
     assert len(traces) == 1
-    ref = difstar.psf(difstar.RegularPolygon(7, R22, 0.3),
-                      plan=real_plan(difstar.RegularPolygon(7, R22, 0.3), **kw), **kw)
+    # the call with an explicit plan under jit (its inputs closed over, concrete): run
+    # op by op it took most of this test's time
+    ref_plan = real_plan(difstar.RegularPolygon(7, R22, 0.3), **kw)
+    ref = jax.jit(lambda: difstar.psf(difstar.RegularPolygon(7, R22, 0.3), plan=ref_plan,
+                                      **kw))()
     np.testing.assert_array_equal(np.asarray(first), np.asarray(again))
     np.testing.assert_allclose(np.asarray(turned), np.asarray(ref), rtol=1e-10,
                                atol=1e-12 * float(np.max(ref)))
@@ -351,7 +361,9 @@ def test_a_plan_for_a_smaller_window_is_refused_where_it_would_wrap():
     small = difstar.plan_psf(pup, shape=(64, 64), **kw)
     with pytest.raises(InputError, match=r"plan's period .* shorter than this window"):
         difstar.psf(pup, shape=(512, 512), plan=small, **kw)
-    got = np.asarray(difstar.psf(pup, shape=(100, 100), plan=small, **kw))
+    # under jit (the inputs closed over, so still concrete and checked): a call with a
+    # plan otherwise runs op by op, 4x as long
+    got = np.asarray(jax.jit(lambda: difstar.psf(pup, shape=(100, 100), plan=small, **kw))())
     want = np.asarray(difstar.psf(pup, shape=(100, 100), **kw))
     assert np.abs(got - want).max() < 1e-3 * want.max()
 
@@ -372,7 +384,9 @@ def test_psf_each_gives_each_wavelengths_psf(method):
     plan = difstar.plan_psf(difstar.Circle(r), wavelength=lams, z_image=F, defocus=dz,
                             pixel_pitch=P, shape=(n, n), sampling="point", method=method)
     kw = dict(z_image=F, pixel_pitch=P, shape=(n, n), plan=plan)
-    got = np.asarray(psf_each(difstar.Circle(r), lams, defocus=dz, **kw))
+    # under jit (the inputs closed over, still concrete and checked): op by op it takes
+    # 3x as long
+    got = np.asarray(jax.jit(lambda: psf_each(difstar.Circle(r), lams, defocus=dz, **kw))())
     assert got.shape == (3, n, n)
     for c, lam in enumerate(np.asarray(lams)):
         one = np.asarray(difstar.psf(difstar.Circle(r), wavelength=lam, defocus=dz, **kw))
@@ -390,10 +404,14 @@ def test_psf_each_gives_each_wavelengths_psf(method):
         return jnp.sum(p * (w[..., :, None] + 2 * w[..., None, :] ** 2))
 
     fj = jax.jit(f)
+    # grad and jacfwd compiled once for both Δz (an array argument): made in the loop,
+    # each was traced and compiled again for the second
+    grad = jax.jit(jax.grad(f, argnums=(0, 1)))
+    jacfwd = jax.jit(jax.jacfwd(f, argnums=(0, 1)))
     for d in (0.0, dz):
         args = (jnp.asarray(d), jnp.asarray(0.9 * r))
-        grads = jax.jit(jax.grad(f, argnums=(0, 1)))(*args)
-        forward = jax.jit(jax.jacfwd(f, argnums=(0, 1)))(*args)
+        grads = grad(*args)
+        forward = jacfwd(*args)
         for i, eps in enumerate((1e-8, 1e-9)):  # metres of Δz, of radius
             hi, lo = list(args), list(args)
             hi[i], lo[i] = hi[i] + eps, lo[i] - eps

@@ -203,13 +203,25 @@ def study_start(family, curvature, vertex_bound: float):
                          angular=0.1 * vertex_bound * np.cos(1.7 * k))
 
 
-def measure(family, setup, params, opts) -> tuple:
-    """Every reported measure of one design (concrete floats), with its focused and
-    defocused PSFs and its outline."""
+def measurer(family, setup, opts):
+    """``params → (measures as concrete floats, focused PSF, defocused PSF, outline)``
+    for the study's setup, compiled once for all the designs it measures (each call of
+    :func:`measure` compiles its own)."""
     import equinox as eqx
 
-    out, img, bok, outline = eqx.filter_jit(measures_fn(family, setup, opts))(params)
-    return {k: float(v) for k, v in out.items()}, img, bok, outline
+    fn = eqx.filter_jit(measures_fn(family, setup, opts))
+
+    def measure_one(params) -> tuple:
+        out, img, bok, outline = fn(params)
+        return {k: float(v) for k, v in out.items()}, img, bok, outline
+
+    return measure_one
+
+
+def measure(family, setup, params, opts) -> tuple:
+    """Every reported measure of one design (concrete floats), with its focused and
+    defocused PSFs and its outline (several designs: :func:`measurer`)."""
+    return measurer(family, setup, opts)(params)
 
 
 def iris_study(
@@ -269,8 +281,9 @@ def iris_study(
     rows = {}
     psfs = {}
     outlines = {}
+    measure_one = measurer(family, setup, opts)  # one compile for every design
     for name, p in designs.items():
-        rows[name], img, bok, outline = measure(family, setup, p, opts)
+        rows[name], img, bok, outline = measure_one(p)
         psfs[name] = (np.asarray(img), np.asarray(bok))
         outlines[name] = np.asarray(outline)
     return {
