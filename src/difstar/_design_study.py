@@ -141,7 +141,7 @@ def study_setup(*, blades: int = 9, f_number: float = 8.0, quick: bool = False):
 
 def measures_fn(family, setup, opts):
     """The pure function ``params → (measures, focused PSF, defocused PSF, outline)`` of
-    the study's setup (``measures``: a dict of scalar arrays); :func:`measure` runs it on
+    the study's setup (``measures``: a dict of scalar arrays); :func:`measurer` runs it on
     one design, :func:`sweep_designs` maps it over many."""
     import jax.numpy as jnp
 
@@ -205,8 +205,8 @@ def study_start(family, curvature, vertex_bound: float):
 
 def measurer(family, setup, opts):
     """``params → (measures as concrete floats, focused PSF, defocused PSF, outline)``
-    for the study's setup, compiled once for all the designs it measures (each call of
-    :func:`measure` compiles its own)."""
+    for the study's setup: every reported measure of one design, by one program compiled
+    for all the designs it measures."""
     import equinox as eqx
 
     fn = eqx.filter_jit(measures_fn(family, setup, opts))
@@ -216,12 +216,6 @@ def measurer(family, setup, opts):
         return {k: float(v) for k, v in out.items()}, img, bok, outline
 
     return measure_one
-
-
-def measure(family, setup, params, opts) -> tuple:
-    """Every reported measure of one design (concrete floats), with its focused and
-    defocused PSFs and its outline (several designs: :func:`measurer`)."""
-    return measurer(family, setup, opts)(params)
 
 
 def iris_study(
@@ -553,7 +547,7 @@ def sweep_designs(designs, *, blades: int = 9, f_number: float = 8.0, quick: boo
     at a time at most, default memory-sized; ``progress(done, total, seconds)`` after
     each chunk). ``designs``: as :func:`parse_sweep` returns them (radial/angular
     (blades,) arrays). Returns ``{"config", "rows"}``: one row per design, in order, with
-    its parameters and the same measures as :func:`measure` (equal to them to rounding).
+    its parameters and the same measures as :func:`measurer` (equal to them to rounding).
     ``convexity_checked``: :func:`check_convex` has passed these designs already."""
     import numpy as np
 

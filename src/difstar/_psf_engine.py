@@ -345,16 +345,9 @@ def _fraction_of_power(inten: Array, energy, *, pixel_pitch, shape, plan: PSFPla
     return _integrate(inten, shape, plan.nodes) * ((pixel_pitch / L) ** 2 / energy)
 
 
-def mft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, shape,
-               scaling, plan: PSFPlan) -> Array:
-    """Fraction of power per pixel by a matrix DFT from the sampled pupil (see module)."""
-    amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
-    return _mft_transform(amp, energy, pixel_pitch=pixel_pitch, shape=shape, plan=plan)
-
-
 def _mft_transform(amp, energy, *, pixel_pitch, shape, plan: PSFPlan) -> Array:
-    """:func:`mft_window` from the pupil's sampled transfer ``amp`` and its ``energy``
-    (:func:`_subcell_atf`)."""
+    """Fraction of power per pixel by a matrix DFT (see module) from the pupil's sampled
+    transfer ``amp`` and its ``energy`` (:func:`_subcell_atf`)."""
     h, w = shape
     m = plan.pupil_window
     L = plan.period
@@ -417,20 +410,12 @@ def _row_blocks(fn, x: Array, n: int, nodes: int) -> Array:
     return jnp.swapaxes(out, 0, 1).reshape(out.shape[1], count * b, -1)[:, :rows]
 
 
-def fft_window(pupil, wavefront, wavelength, *, z_image, defocus, pixel_pitch, shape,
-               scaling, plan: PSFPlan) -> Array:
-    """As :func:`mft_window`, by pruned FFTs of length n = L/p: the field at the pixel
+def _fft_transform(amp, energy, *, pixel_pitch, shape, plan: PSFPlan) -> Array:
+    """As :func:`_mft_transform`, by pruned FFTs of length n = L/p: the field at the pixel
     centres is the n-point inverse DFT of the pupil window (zero beyond it; frequencies
     offset by half a sample change the field only by a unimodular factor), along the
     pupil's rows first, keeping the window's columns, then along those columns, keeping
     its rows. Sub-pixel nodes shift the output by phase ramps on the pupil."""
-    amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
-    return _fft_transform(amp, energy, pixel_pitch=pixel_pitch, shape=shape, plan=plan)
-
-
-def _fft_transform(amp, energy, *, pixel_pitch, shape, plan: PSFPlan) -> Array:
-    """:func:`fft_window` from the pupil's sampled transfer ``amp`` and its ``energy``
-    (:func:`_subcell_atf`)."""
     h, w = shape
     m = plan.pupil_window
     L = plan.period
@@ -478,9 +463,13 @@ def evaluate(pupil, wavelength, *, z_image, defocus, pixel_pitch, shape, scaling
     if plan.method == "exact":
         return exact_window(pupil.vertices, wavelength, z_image=z_image,
                             pixel_pitch=pixel_pitch, shape=shape, nodes=plan.nodes)
-    window = fft_window if plan.method == "fft" else mft_window
-    return window(pupil, wavefront, wavelength, z_image=z_image, defocus=defocus,
-                  pixel_pitch=pixel_pitch, shape=shape, scaling=scaling, plan=plan)
+    amp, energy = _subcell_atf(pupil, wavefront, wavelength, z_image, defocus, scaling, plan)
+    return _transform(plan)(amp, energy, pixel_pitch=pixel_pitch, shape=shape, plan=plan)
+
+
+def _transform(plan: PSFPlan):
+    """The transform of a sampled pupil's plan: pruned FFTs or the matrix DFT."""
+    return _fft_transform if plan.method == "fft" else _mft_transform
 
 
 def evaluate_each(pupil, wavelengths, *, z_image, defocus, pixel_pitch, shape, scaling,
@@ -497,7 +486,7 @@ def evaluate_each(pupil, wavelengths, *, z_image, defocus, pixel_pitch, shape, s
     # would become a select, and its exponentials be evaluated M² times (2-2.5x slower)
     covs = jax.vmap(lambda lam: _subcell_coverage(pupil, lam, z_image, defocus, scaling,
                                                   plan))(wavelengths)
-    transform = _fft_transform if plan.method == "fft" else _mft_transform
+    transform = _transform(plan)
     windows = []
     for c in range(wavelengths.shape[0]):
         amp, energy = _atf_of_coverage(covs[c], wavefront, wavelengths[c], z_image, defocus,
