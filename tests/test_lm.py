@@ -114,6 +114,73 @@ def test_aux_of_the_answer_rides_with_the_batched_jacobian():
     assert np.allclose(sol.aux, [3.0, 0.5], rtol=1e-6)
 
 
+def _items(u, args, i):
+    # item i of a stacked residual: exp(-(i + 1) u0 t) u1 - data_i, with its aux
+    scale = (i + 1.0) * u[0]
+    return u[1] * jnp.exp(-scale * args[0]) - args[1][i], scale
+
+
+def test_items_of_the_batched_jacobian_are_one_map_with_the_analytic_jacobian():
+    """``items``: the items' residuals stacked, each linearised inside one lax.map; the
+    values and the Jacobian are the closed form's (d/du0 = −(i+1) t u1 e^{−(i+1) u0 t},
+    d/du1 = e^{−(i+1) u0 t}), with 5 parameters padded to whole batches of 2, and the
+    aux rides along."""
+    from difstar._lm import with_batched_jacobian
+
+    t = jnp.linspace(0.0, 1.0, 7)
+    data = jnp.stack([jnp.sin(t), jnp.cos(t), t])
+    u = jnp.asarray([0.7, 1.3, 0.0, 0.0, 0.0])  # three parameters the items ignore
+    fn = jax.jit(with_batched_jacobian(_items, items=3, batch=2, has_aux=True))
+    r, aux = fn(u, (t, data))
+    k = jnp.arange(1.0, 4.0)[:, None]
+    e = np.exp(-k * 0.7 * t)
+    np.testing.assert_allclose(r, 1.3 * e - data, rtol=1e-13)
+    np.testing.assert_allclose(aux, 0.7 * k[:, 0], rtol=1e-13)
+    jac = jax.jacfwd(lambda v: fn(v, (t, data))[0])(u)
+    assert jac.shape == (3, 7, 5)
+    np.testing.assert_allclose(jac[..., 0], -k * t * 1.3 * e, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(jac[..., 1], e, rtol=1e-12)
+    assert not np.asarray(jac[..., 2:]).any()
+
+
+ITEMS_CHILD = """
+import sys
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, "tests")
+from test_lm import _items
+from difstar._batch import device_mesh
+from difstar._lm import with_batched_jacobian
+t = jnp.linspace(0.0, 1.0, 7)
+args = (t, jnp.stack([jnp.sin(t), jnp.cos(t), t]))
+u = jnp.asarray([0.7, 1.3, 0.2])
+one = with_batched_jacobian(lambda v, a, i: _items(v, a, i)[0], items=3, batch=1)
+two = with_batched_jacobian(lambda v, a, i: _items(v, a, i)[0], items=3, batch=1,
+                            mesh=device_mesh(2))
+j1, j2 = (np.asarray(jax.jit(jax.jacfwd(f))(u, args)) for f in (one, two))
+print("RESULT", jax.device_count(), float(np.abs(j1 - j2).max()), float(np.abs(j1).max()))
+"""
+
+
+def test_items_of_the_batched_jacobian_shared_out_over_two_devices():
+    """The items' Jacobian with its columns shared out over 2 host devices (3 columns,
+    padded to 4) is the one device's."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env.pop("DIFSTAR_DEVICES", None)
+    p = subprocess.run([sys.executable, "-c", ITEMS_CHILD],
+                       cwd=Path(__file__).resolve().parents[1], env=env,
+                       capture_output=True, text=True, timeout=300)
+    line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
+    assert p.returncode == 0 and line, p.stderr[-3000:]
+    _, devices, diff, size = line[-1].split()
+    assert int(devices) == 2 and float(size) > 0.1 and float(diff) <= 1e-12 * float(size)
+
+
 def test_a_step_compiled_ahead_gives_the_same_solve_and_other_shapes_still_solve():
     """LMStepper.compile_ahead: the next solve of those shapes runs the program compiled
     on the background thread (the same steps and answer as a stepper without it); a

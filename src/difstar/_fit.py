@@ -13,7 +13,9 @@ The residuals are the RAW mosaic itself, ``(ζ_pred − ζ_obs) / σ`` with σ f
 Poisson–Gaussian noise model and weight 0 on saturated pixels; the prediction is
 ``difstar.simulate`` and nothing lower. Captures of one configuration (one focus
 setting: an exposure bracket) share one PSF: ``simulate`` is vmapped over the exposure
-time only, and JAX keeps the PSF computation unbatched.
+time only, and JAX keeps the PSF computation unbatched. Configurations on one grid are
+one ``lax.map`` (:func:`jointly`), each linearised inside it: the chain is traced and
+compiled once for all of them.
 
 The parameters, their shapes and units: :mod:`difstar._fit_params`.
 """
@@ -87,6 +89,37 @@ class ConfigSpec:
     focus_distance: float
     object_distance: float
     grid: Grid
+
+
+def joint_grid(grids) -> tuple[int, int] | None:
+    """The period n (pixels) and oversampling q on which configurations' engine grids
+    could be one (:func:`merged_grid`): the largest of each; None where they cannot
+    (another method, other crops)."""
+    if any(g.method != "engine" or g.psf_plan.method == "exact" for g in grids):
+        return None
+    if len({(g.crop, g.scaling, g.raw_only, g.psf_plan.method) for g in grids}) != 1:
+        return None
+    return max(g.n for g in grids), max(g.oversample for g in grids)
+
+
+def merged_grid(grids) -> Grid | None:
+    """One grid that holds what each of ``grids`` holds (planned on one period): the
+    largest windows, sub-cells and nodes of any; None where their periods or shapes
+    differ."""
+    g0 = grids[0]
+    if len({(g.n, g.oversample, g.crop, g.scaling, g.raw_only, g.method, g.psf_plan.method,
+             g.psf_plan.period) for g in grids}) != 1:
+        return None
+    plans = [g.psf_plan for g in grids]
+    plan = dataclasses.replace(
+        plans[0], nodes=max(p.nodes for p in plans),
+        pupil_window=max(p.pupil_window for p in plans),
+        subcells=max(p.subcells for p in plans),
+        use_defocus=any(p.use_defocus for p in plans))
+    return dataclasses.replace(
+        g0, use_defocus=any(g.use_defocus for g in grids), psf_plan=plan,
+        source_window=max(g.source_window for g in grids),
+        blur_reach=max(g.blur_reach for g in grids))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -286,22 +319,54 @@ def predict(model: FitModel, x: dict, *, full: bool = False) -> dict:
     """RAW mosaics ζ (K_c, h, w) per configuration (``full``: whole Predictions). The
     captures of a configuration are one vmap over exposure time (and source position,
     when the captures' rough positions differ); the PSF depends on neither, so JAX
-    computes it once per configuration, and with a shared position the image too."""
-    out = {}
-    for cfg in model.configs:
-        camera, scene, ts, pos = camera_scene(model, x, cfg.name)
-        offs = {c.base_offset for c in model.captures_of(cfg.name)}
+    computes it once per configuration, and with a shared position the image too.
+    Configurations on one grid with as many captures each (:func:`jointly`) are one
+    ``lax.map`` over them: the chain traced and compiled once, not once per
+    configuration."""
+    if jointly(model):
+        outs = jax.lax.map(lambda i: predict_config(model, x, i, full=full),
+                           jnp.arange(len(model.configs)))
+        return {cfg.name: jax.tree.map(lambda a, i=i: a[i], outs)
+                for i, cfg in enumerate(model.configs)}
+    return {cfg.name: _bracket(camera_scene(model, x, cfg.name), cfg.grid, full,
+                               _one_position(model.captures_of(cfg.name)))
+            for cfg in model.configs}
 
-        def one(t, p, camera=camera, scene=scene, grid=cfg.grid):
-            s = eqx.tree_at(lambda s: (s.exposure_time, s.sources[0].position), scene, (t, p))
-            pr = simulate(camera, s, grid)
-            return pr if full else pr.cfa
 
-        if len(offs) == 1:
-            out[cfg.name] = jax.vmap(one, in_axes=(0, None))(ts, pos[0])
-        else:
-            out[cfg.name] = jax.vmap(one)(ts, pos)
-    return out
+def predict_config(model: FitModel, x: dict, i, *, full: bool = False):
+    """The RAW mosaics ζ (K, h, w) of configuration ``i`` (a traced index) of a model
+    whose configurations are on one grid (:func:`jointly`)."""
+    each = [camera_scene(model, x, cfg.name) for cfg in model.configs]
+    stacked = jax.tree.map(lambda *a: jnp.stack(a), *each)
+    return _bracket(jax.tree.map(lambda a: a[i], stacked), model.configs[0].grid, full,
+                    all(_one_position(model.captures_of(c.name)) for c in model.configs))
+
+
+def _one_position(captures) -> bool:
+    return len({c.base_offset for c in captures}) == 1
+
+
+def _bracket(camera_scene_of, grid: Grid, full: bool, one_position: bool):
+    # one configuration's captures (camera_scene's output), one vmap over exposure time
+    # and, unless they share one rough position, over the source position
+    camera, scene, ts, pos = camera_scene_of
+
+    def one(t, p):
+        s = eqx.tree_at(lambda s: (s.exposure_time, s.sources[0].position), scene, (t, p))
+        pr = simulate(camera, s, grid)
+        return pr if full else pr.cfa
+
+    if one_position:
+        return jax.vmap(one, in_axes=(0, None))(ts, pos[0])
+    return jax.vmap(one)(ts, pos)
+
+
+def jointly(model: FitModel) -> bool:
+    """Whether :func:`predict` maps over the configurations: more than one, all on one
+    grid, with as many captures each."""
+    cfgs = model.configs
+    return (len(cfgs) > 1 and all(c.grid == cfgs[0].grid for c in cfgs)
+            and len({len(model.captures_of(c.name)) for c in cfgs}) == 1)
 
 
 # ----------------------------------------------------------------------- residuals
@@ -328,13 +393,28 @@ def make_residual_fn(model: FitModel, *, jac_batch: int | None = None, mesh=None
     :func:`difstar._lm.with_batched_jacobian`, the one Jacobian rule of every difstar fit.
     """
 
-    def raw(u, args):
-        u_eff = args["u_ref"] + args["active"] * (u - args["u_ref"])
-        x = from_unconstrained(model, u_eff)
-        pred = predict(model, x)
-        return {k: (pred[k] - args["data"][k][0]) * args["data"][k][1] for k in pred}
+    def physical(u, args):
+        return from_unconstrained(model, args["u_ref"] + args["active"] * (u - args["u_ref"]))
 
-    fn = with_batched_jacobian(raw, batch=jac_batch, mesh=mesh)
+    if jointly(model):  # the configurations one lax.map, each linearised inside it
+        names = [cfg.name for cfg in model.configs]
+
+        def item(u, args, i):
+            obs = jnp.stack([args["data"][k][0] for k in names])[i]
+            weight = jnp.stack([args["data"][k][1] for k in names])[i]
+            return (predict_config(model, physical(u, args), i) - obs) * weight
+
+        stacked = with_batched_jacobian(item, batch=jac_batch, mesh=mesh, items=len(names))
+
+        def fn(u, args):
+            r = stacked(u, args)
+            return {k: r[i] for i, k in enumerate(names)}
+    else:
+        def raw(u, args):
+            pred = predict(model, physical(u, args))
+            return {k: (pred[k] - args["data"][k][0]) * args["data"][k][1] for k in pred}
+
+        fn = with_batched_jacobian(raw, batch=jac_batch, mesh=mesh)
 
     # jitted, so that the solver's init, its step, the residuals and the Jacobian reuse
     # one trace of the chain instead of tracing it again each (half the compile time)

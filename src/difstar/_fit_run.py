@@ -25,7 +25,9 @@ from difstar._fit import (
     FitModel,
     Fitter,
     camera_scene,
+    joint_grid,
     make_args,
+    merged_grid,
     to_unconstrained,
 )
 from difstar._fit_procedure import FIRST_STEP, _log, observed_data, procedure_of, run_stages
@@ -64,13 +66,19 @@ def camera_constants(man):
 
 def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
                 pattern: str, padding: float | None = None, values: dict | None = None,
-                accuracy: float | None = None):
+                accuracy: float | None = None, joint: bool = False):
     """A FitModel for the manifest: grids from ``choose_grid`` at the parameters' most
     demanding bounds (largest |Δz| and source), ``crops`` per configuration, the
     captures' rough source offsets from their region centres (px) and exposure times.
     ``padding`` (default: the manifest's ``grid.padding``, else 1) sets the PSF engine's
     period; ``accuracy`` (default: the manifest's ``grid.accuracy``) its target, which
-    alone (no ``padding`` given here) also chooses the period."""
+    alone (no ``padding`` given here) also chooses the period.
+
+    ``joint``: configurations whose periods ``padding`` sets are planned again on the
+    longest of them and given one grid holding what each needs (:func:`difstar._fit.
+    merged_grid`), so that the fit traces and compiles the chain once for all of them
+    (:func:`difstar._fit.jointly`); each then costs what the most demanding one costs.
+    The fit asks for it; a synthesis keeps each configuration's own grid."""
     import dataclasses
 
     cc = dataclasses.replace(camera_constants(man), pattern=pattern)
@@ -89,8 +97,8 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
     acc = man.grid.get("accuracy") if accuracy is None else accuracy
     if padding is None and acc is None:
         padding = man.grid.get("padding", 1.0)
-    configs = []
-    for name, cfg in man.configurations.items():
+
+    def grid_of(name, cfg, n=None, oversample=None):
         crop = tuple(crops[name])
         dummy = ConfigSpec(name, float(cfg["focus_distance"]), float(cfg["object_distance"]),
                            Grid(n=max(crop), crop=crop, raw_only=True))
@@ -104,8 +112,9 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
                 x[key] = 1.3 * np.abs(p.value) + 0.3 * man.parameters[key]["perturb_scale"]
         # one compiled program instead of dozens of eager operations, each compiled
         camera, scene, _, _ = eqx.filter_jit(lambda x: camera_scene(probe, x, name))(x)
-        g = choose_grid(camera, scene, crop=crop, raw_only=True,
-                        oversample=man.grid.get("oversample"), accuracy=acc, padding=padding)
+        g = choose_grid(camera, scene, crop=crop, raw_only=True, n=n,
+                        oversample=man.grid.get("oversample") if oversample is None
+                        else oversample, accuracy=acc, padding=padding)
         plan = g.psf_plan
         dz = probe.params.get(f"defocus/{name}")
         if dz is not None and dz.free and not plan.use_defocus and plan.method != "exact":
@@ -120,7 +129,21 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
         grid = Grid(n=g.n, oversample=g.oversample, crop=crop, use_defocus=use_dz,
                     raw_only=True, method="engine", source_window=g.source_window + 2 * reach,
                     psf_plan=plan, blur_reach=g.blur_reach)
-        configs.append(dataclasses.replace(dummy, grid=grid))
+        return dataclasses.replace(dummy, grid=grid)
+
+    configs = [grid_of(name, cfg) for name, cfg in man.configurations.items()]
+    # one grid for all: only where the padding sets each period (else n is the crop's),
+    # and where the configurations have as many captures each (else they are not mapped)
+    counts = {sum(c.config == cfg.name for c in caps) for cfg in configs}
+    if joint and len(configs) > 1 and padding is not None and len(counts) == 1:
+        common = joint_grid([c.grid for c in configs])
+        if common is not None:
+            n, q = common
+            again = [grid_of(name, cfg, n=n, oversample=q)
+                     for name, cfg in man.configurations.items()]
+            merged = merged_grid([c.grid for c in again])
+            if merged is not None:
+                configs = [dataclasses.replace(c, grid=merged) for c in again]
     return FitModel(cc, tuple(configs), caps, params)
 
 
@@ -189,6 +212,7 @@ def prepare(man):
     model = build_model(
         man, crops=crops, base_offsets={k: v["base_offset"] for k, v in caps.items()},
         exposure_times={k: v["exposure_time"] for k, v in caps.items()}, pattern=pattern,
+        joint=True,
     )
     return model, caps
 

@@ -42,7 +42,7 @@ JAC_BATCH = 4
 
 
 def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
-                          has_aux: bool = False) -> Callable:
+                          has_aux: bool = False, items: int | None = None) -> Callable:
     """``fn(u, args)`` equal to ``raw(u, args)`` (residuals: any pytree of arrays, ``u``
     a flat vector) whose derivative in ``u`` is computed ``batch`` (default
     :data:`JAC_BATCH`) parameter directions
@@ -53,6 +53,12 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
     of every grid-sized intermediate — 8 GB for the 81² Spitzer PSF's 16 parameters;
     this way the linearisation keeps the (residuals × P) matrix and ``batch`` tangents.
     ``args`` is not differentiated.
+
+    ``items``: ``raw(u, args, i)`` gives item ``i``'s residuals (``i`` a traced index,
+    0 ≤ i < ``items``), and ``fn(u, args)`` all items' stacked on a leading axis. The
+    items are one ``lax.map``, each linearised inside it: one trace and one compiled
+    body for all (the RAW fit's configurations on one grid), where linearising the map
+    as a whole would compile its body for the primal and again for the tangents.
 
     ``mesh`` (a one-axis :func:`difstar._batch.device_mesh` of more than one device):
     the columns are shared out over its devices (``shard_map``): each device linearises
@@ -68,9 +74,15 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
     batch = JAC_BATCH if batch is None else int(batch)
     n_dev = 1 if mesh is None else int(mesh.size)
 
+    def each(fun):  # fun(i) for every item, stacked (the function itself without items)
+        return fun(None) if items is None else jax.lax.map(fun, jnp.arange(items))
+
+    def at(u, args, i):
+        return raw(u, args) if items is None else raw(u, args, i)
+
     @jax.custom_jvp
     def fn(u, args):
-        return raw(u, args)
+        return each(lambda i: at(u, args, i))
 
     @fn.defjvp
     def _fn_jvp(primals, tangents):
@@ -78,7 +90,7 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
         du = tangents[0]  # the data are not differentiated
         n = u.shape[0]
         if n == 0:
-            y = raw(u, args)
+            y = each(lambda i: at(u, args, i))
             return y, jax.tree_util.tree_map(jnp.zeros_like, y)
         b = min(batch, -(-n // n_dev))
         # the directions padded with zero rows to a whole number of batches on every
@@ -90,12 +102,18 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
             # one trace of the chain: linearised once, its linear map applied to the
             # rows of eye (parameter directions), b at a time; an empty aux where raw
             # gives none
-            def with_aux(v):
-                out = raw(v, args)
-                return out if has_aux else (out, ())
+            def item(i):
+                def with_aux(v):
+                    out = at(v, args, i)
+                    return out if has_aux else (out, ())
 
-            y, column, aux = jax.linearize(with_aux, u, has_aux=True)
-            return y, aux, jax.lax.map(column, eye, batch_size=b)
+                y, column, aux = jax.linearize(with_aux, u, has_aux=True)
+                return y, aux, jax.lax.map(column, eye, batch_size=b)
+
+            y, aux, cols = each(item)
+            if items is not None:  # directions first, then items
+                cols = jax.tree_util.tree_map(lambda c: jnp.swapaxes(c, 0, 1), cols)
+            return y, aux, cols
 
         if mesh is not None:  # each device its own rows of eye; y is the same on all
             columns = jax.shard_map(columns, mesh=mesh, in_specs=(P(AXIS), P(), P()),
