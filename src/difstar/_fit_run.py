@@ -75,9 +75,9 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
     alone (no ``padding`` given here) also chooses the period.
 
     ``joint``: configurations whose periods ``padding`` sets are planned again on the
-    longest of them and given one grid holding what each needs (:func:`difstar._fit.
+    longest of them and given one grid holding what each needs (:func:`difstar._fit_model.
     merged_grid`), so that the fit traces and compiles the chain once for all of them
-    (:func:`difstar._fit.jointly`); each then costs what the most demanding one costs.
+    (:func:`difstar._fit_model.jointly`); each then costs what the most demanding one costs.
     The fit asks for it; a synthesis keeps each configuration's own grid."""
     import dataclasses
 
