@@ -37,6 +37,7 @@ from ._fit_model import CaptureSpec as CaptureSpec
 from ._fit_model import ConfigSpec as ConfigSpec
 from ._fit_model import FitModel as FitModel
 from ._fit_model import camera_scene as camera_scene
+from ._fit_model import equal_brackets as equal_brackets
 from ._fit_model import exposure_times as exposure_times
 from ._fit_model import free_parts as free_parts
 from ._fit_model import from_unconstrained as from_unconstrained
@@ -90,15 +91,16 @@ def make_residual_fn(model: FitModel, *, jac_batch: int | None = None, mesh=None
     if jointly(model):  # the configurations one lax.map, each linearised inside it
         names = [cfg.name for cfg in model.configs]
 
-        def item(u, args, i):
-            obs = jnp.stack([args["data"][k][0] for k in names])[i]
-            weight = jnp.stack([args["data"][k][1] for k in names])[i]
+        def item(u, args, i):  # args["data"]: (ζ_obs, weight), each stacked
+            obs, weight = (a[i] for a in args["data"])
             return (predict_config(model, physical(u, args), i) - obs) * weight
 
         stacked = with_batched_jacobian(item, batch=jac_batch, mesh=mesh, items=len(names))
 
         def fn(u, args):
-            r = stacked(u, args)
+            # the configurations' data stacked once, outside the map's body
+            data = tuple(jnp.stack([args["data"][k][j] for k in names]) for j in (0, 1))
+            r = stacked(u, {**args, "data": data})
             return {k: r[i] for i, k in enumerate(names)}
     else:
         def raw(u, args):

@@ -349,7 +349,12 @@ def _bracket(camera_scene_of, grid: Grid, full: bool, one_position: bool):
 
 def jointly(model: FitModel) -> bool:
     """Whether :func:`predict` maps over the configurations: more than one, all on one
-    grid, with as many captures each."""
+    grid, with as many captures each (:func:`equal_brackets`)."""
     cfgs = model.configs
     return (len(cfgs) > 1 and all(c.grid == cfgs[0].grid for c in cfgs)
-            and len({len(model.captures_of(c.name)) for c in cfgs}) == 1)
+            and equal_brackets(model.captures, [c.name for c in cfgs]))
+
+
+def equal_brackets(captures, names) -> bool:
+    """Whether the configurations ``names`` have as many of ``captures`` each."""
+    return len({sum(c.config == k for c in captures) for k in names}) == 1

@@ -25,6 +25,7 @@ from difstar._fit import (
     FitModel,
     Fitter,
     camera_scene,
+    equal_brackets,
     joint_grid,
     make_args,
     merged_grid,
@@ -98,7 +99,8 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
     if padding is None and acc is None:
         padding = man.grid.get("padding", 1.0)
 
-    def grid_of(name, cfg, n=None, oversample=None):
+    def probe_of(name, cfg):
+        # the configuration's camera and scene at the values its grid must hold
         crop = tuple(crops[name])
         dummy = ConfigSpec(name, float(cfg["focus_distance"]), float(cfg["object_distance"]),
                            Grid(n=max(crop), crop=crop, raw_only=True))
@@ -112,6 +114,11 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
                 x[key] = 1.3 * np.abs(p.value) + 0.3 * man.parameters[key]["perturb_scale"]
         # one compiled program instead of dozens of eager operations, each compiled
         camera, scene, _, _ = eqx.filter_jit(lambda x: camera_scene(probe, x, name))(x)
+        return dummy, probe, camera, scene
+
+    def grid_of(probed, n=None, oversample=None):
+        dummy, probe, camera, scene = probed
+        name, crop = dummy.name, dummy.grid.crop
         g = choose_grid(camera, scene, crop=crop, raw_only=True, n=n,
                         oversample=man.grid.get("oversample") if oversample is None
                         else oversample, accuracy=acc, padding=padding)
@@ -131,16 +138,16 @@ def build_model(man, *, crops: dict, base_offsets: dict, exposure_times: dict,
                     psf_plan=plan, blur_reach=g.blur_reach)
         return dataclasses.replace(dummy, grid=grid)
 
-    configs = [grid_of(name, cfg) for name, cfg in man.configurations.items()]
+    probes = [probe_of(name, cfg) for name, cfg in man.configurations.items()]
+    configs = [grid_of(p) for p in probes]
     # one grid for all: only where the padding sets each period (else n is the crop's),
     # and where the configurations have as many captures each (else they are not mapped)
-    counts = {sum(c.config == cfg.name for c in caps) for cfg in configs}
-    if joint and len(configs) > 1 and padding is not None and len(counts) == 1:
+    if (joint and len(configs) > 1 and padding is not None
+            and equal_brackets(caps, list(man.configurations))):
         common = joint_grid([c.grid for c in configs])
         if common is not None:
             n, q = common
-            again = [grid_of(name, cfg, n=n, oversample=q)
-                     for name, cfg in man.configurations.items()]
+            again = [grid_of(p, n=n, oversample=q) for p in probes]
             merged = merged_grid([c.grid for c in again])
             if merged is not None:
                 configs = [dataclasses.replace(c, grid=merged) for c in again]
