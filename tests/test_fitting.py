@@ -574,7 +574,7 @@ def test_scan_puts_the_solver_in_the_right_basin(synthetic, capsys):
     # the grid is the multiples of the step: two starts inside one step choose the same
     # point (a rough start and the main fit then take the same basin)
     from difstar.fitting._analysis import _scan
-    from difstar.fitting._solve import _PixelTarget
+    from difstar.fitting._residuals import _PixelTarget
 
     fixed = model.with_values({"rotation": 0.0})
     picks = [_scan(fixed, data, _PixelTarget(data),
@@ -621,7 +621,7 @@ def test_a_scan_shows_its_progress_point_by_point(capsys):
     in a verbose fit draws a bar on stderr that counts the grid's points (a scan of a
     few hundred model images takes seconds), and a quiet one draws nothing."""
     from difstar.fitting._analysis import scan_grid
-    from difstar.fitting._solve import _PixelTarget
+    from difstar.fitting._residuals import _PixelTarget
 
     clean = _numpy_star(**TRUE)
     data = FitData.from_array(clean, sigma=2e-3 * clean.max())
@@ -1398,7 +1398,8 @@ def test_fit_jacobian_residual_and_images_from_one_program():
     and the residual and model image it returns with it against that image, in float64."""
     import jax.numpy as jnp
 
-    from difstar.fitting._solve import _jacobian, _PixelTarget
+    from difstar.fitting._residuals import _PixelTarget
+    from difstar.fitting._solve import _jacobian
 
     model = ImageModel(obstructed_circle_pupil(), {
         "pixel_scale": Param(0.6), "x0": Param(0.2, True, (-2.0, 2.0)),
@@ -1425,6 +1426,51 @@ def test_fit_jacobian_residual_and_images_from_one_program():
                                atol=1e-10)
     _assert_matches_central_differences(jac.reshape(13, 13, -1) * sigma[..., None], img,
                                         base, names, x0)
+
+
+def test_joint_jacobian_of_three_stars_in_compressed_directions():
+    """Three stars fitted together (a rotation shared; a centre, flux and background
+    each): the errors' Jacobian, whose star parameters share directions with the other
+    stars' (column_blocks: 2 + 4 directions, not 2 + 12), against central differences
+    of each star's own model image, in float64; every star's column exactly 0 on the
+    other stars' pixels. Where a flux taken in closed form is shared, the residuals are
+    coupled and no compression is used."""
+    import jax.numpy as jnp
+
+    from difstar._lm import column_colours
+    from difstar.fitting._residuals import _PixelTarget, column_blocks
+    from difstar.fitting._solve import _jacobian
+
+    per = ("x0", "y0", "flux", "background")
+    model = ImageModel(obstructed_circle_pupil(), {
+        "pixel_scale": Param(0.6), "x0": Param(0.2, True, (-2.0, 2.0)),
+        "y0": Param(-0.1, True, (-2.0, 2.0)),
+        "rotation": Param(3.0, True, (-30.0, 30.0)), "flux": Param(50.0, True, scale=10.0),
+        "background": Param(0.5, True, scale=1.0), "jitter": Param(0.3, True, (0.0, 2.0))},
+        light=Light.monochromatic(3.6e-6), pad=4).for_captures(per, 3)
+    rng = np.random.default_rng(0)
+    datas = [FitData.from_array(rng.random((13, 13)), sigma=0.05) for _ in range(3)]
+    targets = [_PixelTarget(d) for d in datas]
+    base = model.values() | {"x0@1": -0.3, "y0@2": 0.4, "flux@2": 20.0}
+    names = model.free
+    owners, rows = column_blocks(model, names, targets)
+    assert column_colours(owners).max() + 1 == 2 + 4 < len(names) == 2 + 12
+    assert column_blocks(model.for_captures(("x0", "y0"), 3), ["rotation", "x0@0"],
+                         targets, lin=["flux"]) is None
+    jac, _, images = _jacobian(model, datas, base, targets)
+    plan = model.plan(model.padded_shape((13, 13)))
+    x0 = jnp.asarray([base[k] for k in names], float)
+    for i in range(3):
+        def img(x, at, i=i):
+            v = {k: jnp.asarray(val, float) for k, val in at.items()}
+            v.update({k: x[j] for j, k in enumerate(names)})
+            return model.image(model.capture_values(v, i), (13, 13), plan)
+
+        block = jac[169 * i:169 * (i + 1)].reshape(13, 13, -1) * 0.05
+        _assert_matches_central_differences(block, img, base, names, x0)
+        np.testing.assert_allclose(images[i], np.asarray(img(x0, base)), rtol=1e-12)
+        others = [j for j, k in enumerate(names) if "@" in k and not k.endswith(f"@{i}")]
+        assert np.all(block[..., others] == 0)
 
 
 def test_incoherent_part_is_the_mean_over_segment_phasing_errors():
@@ -1533,7 +1579,7 @@ def test_projection_is_numpys_least_squares_and_differentiates_exactly():
     import jax
     import jax.numpy as jnp
 
-    from difstar.fitting._solve import closed_form
+    from difstar.fitting._residuals import closed_form
 
     rng = np.random.default_rng(0)
     p, c = rng.normal(size=(50,)), rng.normal(size=(50,))
@@ -1564,7 +1610,7 @@ def test_linear_parts_rebuild_the_residual_of_two_captures():
     backgrounds."""
     import jax.numpy as jnp
 
-    from difstar.fitting._solve import _linear_parts, _PixelTarget, _residual_fn
+    from difstar.fitting._residuals import _linear_parts, _PixelTarget, _residual_fn
 
     clean = _numpy_star(**TRUE)
     datas = [FitData.from_array(clean, sigma=1.0, exposure=e) for e in (1.0, 4.0)]
@@ -1586,7 +1632,8 @@ def test_flux_in_closed_form_ends_where_the_solver_carrying_it_ends(synthetic):
     """The same fit of the independent star with flux and background taken in closed
     form (unbounded: projected) and carried by the solver (bounded): the same values to
     a small fraction of their standard errors, the same χ²."""
-    from difstar.fitting._solve import _PixelTarget, projected_names
+    from difstar.fitting._residuals import _PixelTarget
+    from difstar.fitting._solve import projected_names
 
     data, _ = synthetic
     free = _model()

@@ -114,6 +114,55 @@ def test_aux_of_the_answer_rides_with_the_batched_jacobian():
     assert np.allclose(sol.aux, [3.0, 0.5], rtol=1e-6)
 
 
+def _blocks(u, t):
+    # three blocks (stars) of 5 residuals each: block c is u0 exp(-u1 t) + u[2 + 2c] t
+    # + u[3 + 2c], and a 2-vector output per block (its mean and its first value)
+    rs, firsts = [], []
+    for c in range(3):
+        r = u[0] * jnp.exp(-u[1] * t) + u[2 + 2 * c] * t + u[3 + 2 * c] * (c + 1.0)
+        rs.append(r)
+        firsts.append(jnp.stack([jnp.mean(r), r[0]]))
+    return jnp.concatenate(rs), firsts
+
+
+def test_column_colours_share_directions_between_blocks_only():
+    from difstar._lm import column_colours
+
+    colour = column_colours([-1, 0, 0, 1, -1, 1, 2, 2])
+    assert colour.tolist() == [0, 2, 3, 2, 1, 3, 2, 3]
+
+
+def test_blocks_of_the_batched_jacobian_equal_the_analytic_jacobian():
+    """``blocks``: 2 shared parameters and 2 per block over 3 blocks computed in 4
+    compressed directions (not 8); every column is the closed form's, the rows of other
+    blocks exactly 0, for a flat residual and for a list of per-block outputs."""
+    from difstar._lm import with_batched_jacobian
+
+    t = jnp.linspace(0.0, 1.0, 5)
+    owners = [-1, -1, 0, 0, 1, 1, 2, 2]
+    rows = (np.repeat(np.arange(3), 5), [np.int32(c) for c in range(3)])
+    fn = jax.jit(with_batched_jacobian(_blocks, batch=2, blocks=(owners, rows)))
+    u0 = jnp.asarray([1.3, 0.7, 0.2, -0.4, 0.5, 0.1, -0.3, 0.9])
+    jac_r, jac_f = jax.jacfwd(lambda u: fn(u, t))(u0)
+    e = jnp.exp(-u0[1] * t)
+    want = np.zeros((15, 8))
+    for c in range(3):
+        want[5 * c:5 * c + 5, 0] = e
+        want[5 * c:5 * c + 5, 1] = -u0[0] * t * e
+        want[5 * c:5 * c + 5, 2 + 2 * c] = t
+        want[5 * c:5 * c + 5, 3 + 2 * c] = c + 1.0
+    np.testing.assert_allclose(jac_r, want, rtol=1e-12, atol=0)
+    for c in range(3):
+        np.testing.assert_allclose(jac_f[c][1], want[5 * c], rtol=1e-12, atol=0)
+        np.testing.assert_allclose(jac_f[c][0], want[5 * c:5 * c + 5].mean(0), rtol=1e-12,
+                                   atol=1e-15)
+    # a parameter said to be block 0's that moves block 1 too is the caller's error: the
+    # compressed Jacobian then differs (the test can fail)
+    bad = jax.jit(with_batched_jacobian(lambda u, t: _blocks(u, t)[0], batch=2,
+                                        blocks=([-1, 0, 0, 0, 1, 1, 2, 2], rows[0])))
+    assert not np.allclose(jax.jacfwd(lambda u: bad(u, t))(u0), want)
+
+
 def _items(u, args, i):
     # item i of a stacked residual: exp(-(i + 1) u0 t) u1 - data_i, with its aux
     scale = (i + 1.0) * u[0]

@@ -41,8 +41,30 @@ MAX_REJECTED = 10
 JAC_BATCH = 4
 
 
+def column_colours(owners) -> np.ndarray:
+    """Which compressed direction each Jacobian column is computed in (``owners``: a
+    sequence of ints, one per column): a column whose
+    ``owners`` entry is −1 (a shared parameter: it moves every residual) has one of its
+    own; the k-th column owned by block c (a parameter of block c alone: a star's
+    centre moves its own window's residuals, no other's) shares the k-th direction after
+    the shared ones with every other block's k-th column (Curtis, Powell and Reid's
+    compression: columns with disjoint rows, summed into one direction and told apart
+    by their rows). P columns of S shared and k per block over B blocks: S + k directions
+    instead of S + k B."""
+    owners = np.asarray(owners, int)
+    colour = np.empty(len(owners), int)
+    shared = owners < 0
+    colour[shared] = np.arange(int(shared.sum()))
+    rank: dict[int, int] = {}
+    for j in np.flatnonzero(~shared):
+        colour[j] = int(shared.sum()) + rank.get(int(owners[j]), 0)
+        rank[int(owners[j])] = rank.get(int(owners[j]), 0) + 1
+    return colour
+
+
 def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
-                          has_aux: bool = False, items: int | None = None) -> Callable:
+                          has_aux: bool = False, items: int | None = None,
+                          blocks: tuple | None = None) -> Callable:
     """``fn(u, args)`` equal to ``raw(u, args)`` (residuals: any pytree of arrays, ``u``
     a flat vector) whose derivative in ``u`` is computed ``batch`` (default
     :data:`JAC_BATCH`) parameter directions
@@ -68,9 +90,21 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
 
     ``has_aux``: ``raw`` returns (residuals, aux), aux computed on the way (values the
     residuals were made with) and not differentiated (its tangent is zero): the same
-    trace gives both (not with ``mesh``)."""
+    trace gives both (not with ``mesh``).
+
+    ``blocks``: ``(owners, rows)``, where the residuals fall into blocks (the stars of a
+    joint fit) and some parameters move one block's alone: ``owners`` (P,) the block of
+    each parameter (−1: shared, it moves every block), ``rows`` a pytree like ``raw``'s
+    residuals of int arrays broadcastable to each leaf, the block of each residual. The
+    columns are then computed compressed (:func:`column_colours`: S + k directions for S
+    shared parameters and k per block, however many blocks) and told apart by their
+    rows. The caller vouches for the structure: a parameter of block c must not move a
+    residual of another block (not with ``items`` or ``mesh``)."""
     if has_aux and mesh is not None:
         raise ValueError("with_batched_jacobian: has_aux is not supported with a mesh")
+    if blocks is not None and (items is not None or mesh is not None):
+        raise ValueError("with_batched_jacobian: blocks is not supported with items or a "
+                         "mesh")
     batch = JAC_BATCH if batch is None else int(batch)
     n_dev = 1 if mesh is None else int(mesh.size)
 
@@ -92,11 +126,25 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
         if n == 0:
             y = each(lambda i: at(u, args, i))
             return y, jax.tree_util.tree_map(jnp.zeros_like, y)
-        b = min(batch, -(-n // n_dev))
+        colour = None
+        if blocks is not None:
+            owners = np.asarray(blocks[0], int)
+            if owners.shape != (n,):
+                raise ValueError(f"with_batched_jacobian: blocks' owners has "
+                                 f"{owners.size} entries for {n} parameters")
+            colour = column_colours(owners)
+        g = n if colour is None else int(colour.max()) + 1  # directions to compute
+        b = min(batch, -(-g // n_dev))
         # the directions padded with zero rows to a whole number of batches on every
         # device: lax.map would trace (and compile) leftover directions as a second,
         # smaller batch
-        eye = jnp.eye(-(-n // (b * n_dev)) * b * n_dev, n, dtype=u.dtype)
+        rows_pad = -(-g // (b * n_dev)) * b * n_dev
+        if colour is None:
+            eye = jnp.eye(rows_pad, n, dtype=u.dtype)
+        else:  # each direction the sum of its columns' unit vectors
+            seeds = np.zeros((rows_pad, n))
+            seeds[colour, np.arange(n)] = 1.0
+            eye = jnp.asarray(seeds, u.dtype)
 
         def columns(eye, u, args):
             # one trace of the chain: linearised once, its linear map applied to the
@@ -119,12 +167,28 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
             columns = jax.shard_map(columns, mesh=mesh, in_specs=(P(AXIS), P(), P()),
                                     out_specs=(P(), P(), P(AXIS)), check_vma=False)
         y, aux, cols = columns(eye, u, args)
-        dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c[:n], axes=1), cols)
+        if colour is None:
+            cols = jax.tree_util.tree_map(lambda c: c[:n], cols)
+        else:  # column j: its direction's derivative on its own block's rows
+            cols = jax.tree_util.tree_map(
+                lambda c, r: _decompressed(c, r, colour, owners), cols,
+                jax.tree_util.tree_map(np.asarray, blocks[1]))
+        dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c, axes=1), cols)
         if not has_aux:
             return y, dy
         return (y, aux), (dy, jax.tree_util.tree_map(jnp.zeros_like, aux))
 
     return fn
+
+
+def _decompressed(c, rows, colour, owners):
+    """The P columns (P, …) from the compressed directions' derivatives ``c`` (G, …):
+    column j is its direction's (``colour[j]``) where the residual's block (``rows``,
+    broadcastable to one) is the parameter's (``owners[j]``; −1: every block), else 0."""
+    rows = jnp.asarray(np.asarray(rows, np.int32))  # (…) or its broadcastable shape
+    own = jnp.asarray(owners.astype(np.int32)).reshape((-1,) + (1,) * (c.ndim - 1))
+    keep = (own < 0) | (rows[None] == own)  # computed in the program, not a constant
+    return jnp.where(keep, c[jnp.asarray(colour)], 0)
 
 
 def normal_covariance(jac):

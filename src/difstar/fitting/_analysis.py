@@ -15,7 +15,8 @@ from .._progress import step_bar
 from ._data import FitData, _angle_from, _polar
 from ._model import ImageModel
 from ._params import PERTURB, FitInputError, _finite
-from ._solve import SpikeProfiles, _as_list, _PixelTarget, model_images
+from ._residuals import SpikeProfiles, _as_list, _PixelTarget
+from ._solve import model_images
 
 #: the most grid points a stage's ``scan`` may try (each one a model image: a scan step
 #: of 1e-7 ran for minutes)

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._custom_types import ScalarLike
 from ._params import ARCSEC
 from ._programs import _light_key, program
 
@@ -76,7 +77,7 @@ def centred_psf(model, v: Mapping[str, Any], shape, light=None) -> np.ndarray:
 
 
 def image_from_centred(model, v: Mapping[str, Any], shape, centred, q: int,
-                       exposure: float = 1.0):
+                       exposure: ScalarLike = 1.0):
     """The model image (H, W) at values ``v`` from ``centred`` (:func:`centred_psf` at
     the optics of ``v``): moved by (``x0`` columns right, ``y0`` rows down), each data
     pixel's square integrated, the detector's blurs applied, all in the spectrum; then

@@ -14,6 +14,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._custom_types import ScalarLike
 from .._param import ForwardModel
 from .._psf import plan_psf, psf
 from .._pupil import distorted
@@ -447,7 +448,7 @@ class ImageModel(ForwardModel):
             {k: jnp.asarray(x, float) for k, x in v.items()})
 
     def image(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None,
-              exposure: float = 1.0, light: Light | None = None):
+              exposure: ScalarLike = 1.0, light: Light | None = None):
         """The model image (H, W) in data pixels for parameter values ``v`` (a dict of
         scalars, traceable), for a capture of relative ``exposure`` in ``light`` (default:
         the model's)."""
@@ -581,7 +582,7 @@ class ImageModel(ForwardModel):
             kern = kern * layer.transfer({}, fx, fy)
         return jnp.asarray(kern)
 
-    def read_out(self, img, v: Mapping[str, Any], shape, exposure: float = 1.0):
+    def read_out(self, img, v: Mapping[str, Any], shape, exposure: ScalarLike = 1.0):
         """The data window (``shape``) of the padded image ``img`` (the PSF after the
         detector's blurs, unit flux) times flux and exposure, through the response
         curve, plus the background."""

@@ -17,15 +17,8 @@ from ._data import noise_from_residuals, reject_outliers
 from ._loop import StageRunner, run_procedure
 from ._model import ImageModel
 from ._params import FitInputError
-from ._solve import (
-    FitResult,
-    _as_list,
-    _errors,
-    _one_fit,
-    _PixelTarget,
-    compile_errors_ahead,
-    model_images,
-)
+from ._residuals import _as_list, _PixelTarget
+from ._solve import FitResult, _errors, _one_fit, compile_errors_ahead, model_images
 from ._stage_types import Hop, Repeat, Solve, parse_stage, stage_dicts
 from ._stages import _check_fit_inputs, _put
 

@@ -1,5 +1,5 @@
-"""One solve and its errors: residuals (pixels or spike profiles), the
-Levenberg–Marquardt solve from one start, the Jacobian, covariance and standard errors,
+"""One solve and its errors: the Levenberg–Marquardt solve from one start (its residuals
+from :mod:`._residuals`), the Jacobian, covariance and standard errors,
 and :class:`FitResult`."""
 
 from __future__ import annotations
@@ -19,11 +19,19 @@ from .._lm import LMStepper, normal_covariance, with_batched_jacobian
 from .._param import bound_map_slope, step_map
 from .._progress import moved_most, step_bar
 from .._xla import solver_jit_options
-from ._centred import centred_psf, fine_factor, image_from_centred, optics_fixed
-from ._data import FitData, _angle_from, _polar
+from ._centred import centred_psf, optics_fixed
+from ._data import FitData
 from ._model import ImageModel
 from ._params import FitInputError, _from_u, _to_u
 from ._programs import program, trace_key
+from ._residuals import (
+    _as_list,
+    _linear_parts,
+    _PixelTarget,
+    _residual_fn,
+    closed_form,
+    column_blocks,
+)
 
 
 @dataclasses.dataclass
@@ -79,127 +87,6 @@ def _rms_peak(residual, data, mask) -> float:
     r = residual[mask]
     return float(np.sqrt(np.mean(r**2)) / np.max(data[mask]))
 
-class _PixelTarget:
-    """The residuals (model − data)/σ on the data's used pixels."""
-
-    kind = "pixels"
-    #: what a trace of :meth:`__call__` depends on besides its arrays (:mod:`._programs`)
-    signature = ("pixels",)
-
-    def __init__(self, data: FitData):
-        self.data = data
-        self.img = jnp.asarray(data.image)
-        self.wgt = jnp.asarray(np.where(data.mask, 1.0 / data.sigma, 0.0))
-        self.n = int(data.mask.sum())
-
-    @property
-    def arrays(self):
-        """The data this target compares with, as arrays a compiled program takes as
-        arguments (not constants: a program then serves another σ, mask or star)."""
-        return (self.img, self.wgt)
-
-    def __call__(self, model_image, v, arrays=None):
-        img, wgt = self.arrays if arrays is None else arrays
-        return ((model_image - img) * wgt).ravel()
-
-class SpikeProfiles:
-    """The residuals of the spikes' angular profiles: around each spike direction
-    (``directions``, degrees, [0, 180), from the data), the mean of r²(I − background)
-    over the pixels between ``r_min`` and ``r_max`` data pixels of the star, in bins of
-    ``bin_width`` degrees within ± ``half_width`` (a spike and its opposite one share
-    bins), each window normalised to unit sum, for data and model alike; weighted by the
-    data's σ propagated through the same sums. The same pixels and bins serve both, so
-    the binning's own bias cancels and only the spikes' positions and shapes count, not
-    their brightness: a stage on these residuals fits the rotation and the distortion of
-    the pupil from the spikes' directions alone. ``centre`` (x, y data pixels from the
-    top-left pixel's centre, y down) and ``background`` are held (from earlier stages)."""
-
-    kind = "spikes"
-
-    def __init__(self, data: FitData, centre, background, directions, *, r_min=12.0,
-                 r_max=45.0, half_width=4.0, bin_width=0.25):
-        h, w = data.image.shape
-        r, th = _polar((h, w), (float(centre[0]), float(centre[1])))
-        use = data.mask & (r >= r_min) & (r <= r_max)
-        nb = int(round(2 * half_width / bin_width))
-        rows, cols, vals, window = [], [], [], []
-        b = 0
-        for k, phi in enumerate(directions):
-            off = _angle_from(th, phi)
-            j = np.floor((off + half_width) / bin_width).astype(int)
-            for jb in range(nb):
-                sel = np.flatnonzero((use & (j == jb)).ravel())
-                if sel.size == 0:
-                    continue
-                rows += [b] * sel.size
-                cols += sel.tolist()
-                vals += (r.ravel()[sel] ** 2 / sel.size).tolist()
-                window.append(k)
-                b += 1
-        if b == 0 or len(set(window)) < len(directions):
-            raise FitInputError("spike profiles: no pixel near a spike direction between "
-                                f"r = {r_min} and {r_max} px; check the annulus.")
-        mat = np.zeros((b, h * w))
-        mat[rows, cols] = vals
-        self.window = np.asarray(window)
-        self.n_windows = len(directions)
-        self.mat = jnp.asarray(mat)
-        self.background = float(background)
-        pd = mat @ (data.image - self.background).ravel()
-        sums = np.bincount(self.window, pd, minlength=self.n_windows)
-        if np.any(sums <= 0):
-            raise FitInputError("spike profiles: a spike window has no positive signal; "
-                                "check the directions and the annulus.")
-        self.profile = pd / sums[self.window]
-        sig = np.sqrt((mat**2) @ (data.sigma**2).ravel()) / sums[self.window]
-        self.wgt = jnp.asarray(1.0 / np.maximum(sig, 1e-12 * sig.max()))
-        self.data_profile = jnp.asarray(self.profile)
-        self.n = b
-        self.directions = [float(d) for d in directions]
-
-    @property
-    def signature(self):
-        """What a trace of :meth:`__call__` depends on besides its arrays."""
-        return ("profiles", self.n_windows)
-
-    @property
-    def arrays(self):
-        """The data this target compares with (see :attr:`_PixelTarget.arrays`)."""
-        return (self.mat, jnp.asarray(self.window), self.data_profile, self.wgt)
-
-    def __call__(self, model_image, v, arrays=None):
-        mat, window, profile, wgt = self.arrays if arrays is None else arrays
-        pm = mat @ (model_image - v["background"]).ravel()
-        sums = jax.ops.segment_sum(pm, window, self.n_windows)
-        return (pm / sums[window] - profile) * wgt
-
-def _residual_fn(model: ImageModel, data, target):
-    """(values, arrays, psfs) → (residual vector, [model image of each capture]) for
-    ``model`` on each of ``data``'s windows (a FitData or a list of them, one ``target``
-    each); ``arrays``: each target's :attr:`~_PixelTarget.arrays` as traced arguments
-    (None: the targets' own, as constants); ``psfs``: each capture's
-    :func:`~._centred.centred_psf` where the optics are held (None: the PSF engine at
-    every call)."""
-    datas, targets = _as_list(data), _as_list(target)
-    plans = [model.plan(model.padded_shape(d.image.shape), d.light) for d in datas]
-    qs = [fine_factor(model, d.light) for d in datas]
-
-    def res(v, arrays=None, psfs=None):
-        rs, ms = [], []
-        for i, (d, t, plan) in enumerate(zip(datas, targets, plans)):
-            vi = model.capture_values(v, i)
-            if psfs is not None:
-                m = image_from_centred(model, vi, d.image.shape, psfs[i], qs[i],
-                                       exposure=d.exposure)
-            else:
-                m = model.image(vi, d.image.shape, plan, exposure=d.exposure,
-                                light=d.light)
-            rs.append(t(m, vi, None if arrays is None else arrays[i]))
-            ms.append(m)
-        return (rs[0] if len(rs) == 1 else jnp.concatenate(rs)), ms
-
-    return res
-
 def model_images(model: ImageModel, values: Mapping[str, float], data) -> list:
     """The model image of each capture's window at ``values`` (a fit's values, or a
     result.json's), as a list of arrays; ``data``: a :class:`FitData` or a list of them.
@@ -223,9 +110,6 @@ def values_of_capture(values: Mapping[str, Any], i: int) -> dict:
     result, or a result.json's values, for any per-capture names)."""
     tag = f"@{i}"
     return {**values, **{k[:-len(tag)]: x for k, x in values.items() if k.endswith(tag)}}
-
-def _as_list(x):
-    return list(x) if isinstance(x, (list, tuple)) else [x]
 
 #: How many times a solve starts again from its answer with a finer PSF plan (the plan
 #: follows the Zernike terms' values: :meth:`ImageModel.plan_holds`).
@@ -274,35 +158,6 @@ def projected_names(model: ImageModel, free: Sequence[str], target) -> list[str]
     lin = [k for k in free if k.split("@")[0] in LINEAR and model.params[k].bounds is None]
     return lin if len(lin) < len(free) else []
 
-def closed_form(r0, a):
-    """(r0 + A β, β) at the β that minimises |r0 + A β|² (A: residuals × n), by the
-    normal equations of the column-scaled A. Differentiable: the solver's Jacobian of
-    the projected residual is the exact one (no Kaufman approximation)."""
-    norm = jnp.sqrt(jnp.sum(a * a, axis=0))
-    scale = jnp.where(norm > 0, norm, 1.0)
-    an = a / scale
-    beta = -jnp.linalg.solve(an.T @ an, an.T @ r0) / scale
-    return r0 + a @ beta, beta
-
-def _linear_parts(model: ImageModel, lin: Sequence[str], images, v1, arrays):
-    """(r0, A) of the pixel residuals as an affine function of the ``lin`` values, from
-    each capture's model image at ``v1`` (those fluxes at 1, backgrounds at 0): the image
-    is flux · (exposure · PSF) + background, so the flux's column is the image less its
-    background, the background's the weights, over the captures each name serves
-    (``flux`` all of them, ``flux@i`` capture i)."""
-    r0s, cols = [], [[] for _ in lin]
-    for i, (m, (img, wgt)) in enumerate(zip(images, arrays)):
-        b = model.capture_values(v1, i)["background"]
-        shape = m - b  # flux × exposure × PSF (flux 1 where projected)
-        serves = [q == q.split("@")[0] or q == f"{q.split('@')[0]}@{i}" for q in lin]
-        kinds = {q.split("@")[0] for q, ok in zip(lin, serves) if ok}
-        base = (0.0 if "flux" in kinds else shape) + (0.0 if "background" in kinds else b)
-        r0s.append(((base - img) * wgt).ravel())
-        for j, (q, ok) in enumerate(zip(lin, serves)):
-            col = shape * wgt if q.split("@")[0] == "flux" else wgt * jnp.ones_like(m)
-            cols[j].append(col.ravel() if ok else jnp.zeros(m.size))
-    return jnp.concatenate(r0s), jnp.stack([jnp.concatenate(c) for c in cols], axis=1)
-
 def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                 atol: float, ftol: float, label: str | None):
     """One Levenberg–Marquardt solve of ``model``'s free parameters on its PSF plan; the
@@ -339,7 +194,12 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
         # the solver's init and step; the closed-form values ride along as the
         # residuals' aux: the solver's state holds them at its answer, so no other
         # program computes them
-        residuals = jax.jit(with_batched_jacobian(residuals_and_linear, has_aux=True))
+        # a star's own parameters (of a field's several) in directions shared with the
+        # other stars' (column_blocks): the Jacobian's cost grows with the stars, not
+        # with their square
+        residuals = jax.jit(with_batched_jacobian(
+            residuals_and_linear, has_aux=True,
+            blocks=column_blocks(model, free, target, lin)))
         return LMStepper(residuals, has_aux=True)  # tolerances: each solve's own
 
     # the fixed values, the unbounded parameters' starts and the data are the solver's
@@ -426,9 +286,12 @@ def _jacobian_program(model: ImageModel, data, values: Mapping[str, float], targ
             return resv(v, arrays)
 
         if not residual:
-            batched = with_batched_jacobian(lambda x, a: res(x, a)[0])
+            batched = with_batched_jacobian(lambda x, a: res(x, a)[0],
+                                            blocks=column_blocks(model, free, target))
             return Ahead(jax.jit(jax.jacfwd(batched), **solver_jit_options()))
-        both = with_batched_jacobian(res)  # (residual, model images), one linearisation
+        # (residual, model images), one linearisation
+        both = with_batched_jacobian(res, blocks=column_blocks(model, free, target,
+                                                               outputs=True))
 
         def with_values(x, a):  # the residual differentiated, both returned as they are
             out = both(x, a)
