@@ -76,6 +76,27 @@ def centred_psf(model, v: Mapping[str, Any], shape, light=None) -> np.ndarray:
     return np.asarray(run(v)) * q * q
 
 
+def image_from_psf(model, img, v: Mapping[str, Any], shape, q: int,
+                   exposure: ScalarLike = 1.0, *, move: bool = False):
+    """The model image from ``model.optics``' PSF ``img`` on the padded window (q
+    samples a data pixel a side): the detector's blurs (and where q > 1 the pixels'
+    squares) in its spectrum, then read out (:meth:`ImageModel.image`'s last part).
+    ``move``: ``img`` is the star's PSF at the window's centre (``optics(...,
+    shift=False)``), moved here by (``x0``, ``y0``) by a phase ramp of that spectrum,
+    which the intensity's band limit makes exact (sampled above its Nyquist rate; the
+    window taken as periodic, as the blurs take it): one PSF then serves every star of
+    a field whose optics are shared."""
+    hp, wp = model.padded_shape(shape)
+    if q > 1:  # the data undersample the intensity: pixels and blurs in its spectrum
+        img = pixels_from_fine(model, v, (hp, wp), img * (q * q), q, move=move)
+    else:  # pixel-integrated samples of a band-limited image: blurs on them exact
+        kern = model.detector_kernel(v, (hp, wp))
+        if move:
+            kern = kern * shift_ramp(v, hp, wp, 1)
+        img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
+    return model.read_out(img, v, shape, exposure)
+
+
 def image_from_centred(model, v: Mapping[str, Any], shape, centred, q: int,
                        exposure: ScalarLike = 1.0):
     """The model image (H, W) at values ``v`` from ``centred`` (:func:`centred_psf` at
@@ -85,6 +106,15 @@ def image_from_centred(model, v: Mapping[str, Any], shape, centred, q: int,
     Traceable in the values."""
     img = pixels_from_fine(model, v, model.padded_shape(shape), centred, q, move=True)
     return model.read_out(img, v, shape, exposure)
+
+
+def shift_ramp(v: Mapping[str, Any], hp: int, wp: int, q: int):
+    """The phase ramp on the half spectrum (``rfft2``) of an (hp q, wp q) window, q
+    samples a data pixel a side, that moves its image by (``x0`` columns right, ``y0``
+    rows down) data pixels."""
+    fy = np.fft.fftfreq(hp * q)[:, None] * q  # cycles per data pixel
+    fx = np.fft.rfftfreq(wp * q)[None, :] * q
+    return jnp.exp(-2j * math.pi * (fx * v["x0"] + fy * v["y0"]))
 
 
 def pixels_from_fine(model, v: Mapping[str, Any], padded, fine, q: int, *,
@@ -102,7 +132,7 @@ def pixels_from_fine(model, v: Mapping[str, Any], padded, fine, q: int, *,
     kern = model.detector_kernel(v, (hp, wp), q, data_grid=q == 1) * jnp.asarray(
         np.sinc(fx) * np.sinc(fy))
     if move:
-        kern = kern * jnp.exp(-2j * math.pi * (fx * v["x0"] + fy * v["y0"]))
+        kern = kern * shift_ramp(v, hp, wp, q)
     img = jnp.fft.irfft2(jnp.fft.rfft2(fine) * kern, s=(hp * q, wp * q))
     # data pixel k's centre is fine sample k q + c (the axis: data pixel hp // 2, fine
     # sample hp q // 2)
@@ -114,5 +144,5 @@ def pixels_from_fine(model, v: Mapping[str, Any], padded, fine, q: int, *,
     return img
 
 
-__all__ = ["AFTER_OPTICS", "centred_psf", "fine_factor", "image_from_centred",
-           "optics_fixed", "pixels_from_fine"]
+__all__ = ["AFTER_OPTICS", "centred_psf", "fine_factor", "image_from_centred", "image_from_psf",
+           "optics_fixed", "pixels_from_fine", "shift_ramp"]

@@ -20,7 +20,7 @@ from .._psf import plan_psf, psf
 from .._pupil import distorted
 from .._sensor import response_curve
 from .._zernike import Zernike
-from ._centred import fine_factor, pixels_from_fine
+from ._centred import fine_factor, image_from_psf
 from ._detector import (
     DiscSource,
     Halo,
@@ -458,12 +458,7 @@ class ImageModel(ForwardModel):
         q = fine_factor(self, light)
         seg = self.plan((hp, wp), light, segment=True) if self.has_incoherent else None
         img = self.optics(v, light, (hp * q, wp * q), q, plans=(plan, seg))
-        if q > 1:  # the data undersample the intensity: pixels and blurs in its spectrum
-            img = pixels_from_fine(self, v, (hp, wp), img * (q * q), q)
-        else:  # pixel-integrated samples of a band-limited image: blurs on them exact
-            kern = self.detector_kernel(v, (hp, wp))
-            img = jnp.fft.irfft2(jnp.fft.rfft2(img) * kern, s=(hp, wp))
-        return self.read_out(img, v, shape, exposure)
+        return image_from_psf(self, img, v, shape, q, exposure)
 
     def _wavefront_and_grid(self, v, light: Light, fine_shape, q: int):
         """The Zernike wavefront at values ``v`` (None without terms) and the window's

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._centred import fine_factor, image_from_centred
+from ._centred import fine_factor, image_from_centred, image_from_psf, optics_fixed
 from ._data import FitData, _angle_from, _polar
 from ._model import ImageModel
 from ._params import FitInputError
@@ -168,22 +168,38 @@ def _same_light(a, b) -> bool:
 def _mapped_residual_fn(model: ImageModel, datas, targets, image, plan, q):
     """:func:`_residual_fn` of captures :func:`alike_captures` finds alike: one
     ``lax.map`` over them, each capture's own values (``name@i``), data, exposure and
-    centred PSF its slice of the stacked arguments; the same residuals (concatenated in
-    the captures' order) and model images."""
+    centred PSF its slice of the stacked arguments; the residuals concatenated in the
+    captures' order, and the model images. Where the captures' own values all act after
+    the optics, their PSF is computed once per call and moved to each star."""
     n, t0, d0 = len(datas), targets[0], datas[0]
     per = [k for k in model.per_capture]
     exposures = np.asarray([d.exposure for d in datas], float)
+    # the stars' own values act after the optics (their centres, fluxes, backgrounds):
+    # one PSF at the window's centre, the optics' shared values, serves them all, each
+    # star moved by a phase ramp of its spectrum (image_from_psf)
+    shared = optics_fixed(model, per)
+    light = model.light if d0.light is None else d0.light
+    hp, wp = model.padded_shape(d0.image.shape)
+    seg = model.plan((hp, wp), light, segment=True) if model.has_incoherent else None
 
     def res(v, arrays=None, psfs=None):
         arrays = [t.arrays for t in targets] if arrays is None else arrays
         xs = ({k: jnp.stack([jnp.asarray(v[f"{k}@{i}"]) for i in range(n)]) for k in per},
               jax.tree_util.tree_map(lambda *a: jnp.stack(a), *arrays),
               None if psfs is None else jnp.stack(psfs), jnp.asarray(exposures))
+        centre = None
+        if psfs is None and shared:
+            centre = model.optics(v, light, (hp * q, wp * q), q, plans=(plan, seg),
+                                  shift=False)
 
         def one(x):
             own, a, psf, exposure = x
             vi = {**v, **own}
-            m = image(vi, d0, plan, q, psf, exposure)
+            if centre is not None:
+                m = image_from_psf(model, centre, vi, d0.image.shape, q, exposure,
+                                   move=True)
+            else:
+                m = image(vi, d0, plan, q, psf, exposure)
             return t0(m, vi, a), m
 
         rs, ms = jax.lax.map(one, xs)

@@ -213,8 +213,17 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     psfs = None
     if optics_fixed(model, model.free):
         at = model.values()
-        psfs = [jnp.asarray(centred_psf(model, model.capture_values(at, i), d.image.shape,
-                                        d.light)) for i, d in enumerate(datas)]
+        psfs, made = [], {}
+        for i, d in enumerate(datas):
+            # one PSF for the captures whose own values all act after the optics and
+            # whose windows and light are one (the stars of a field)
+            key = (i,) if not optics_fixed(model, model.per_capture) else (
+                d.image.shape, None if d.light is None else tuple(d.light.wavelengths),
+                None if d.light is None else tuple(d.light.weights))
+            if key not in made:
+                made[key] = jnp.asarray(centred_psf(model, model.capture_values(at, i),
+                                                    d.image.shape, d.light))
+            psfs.append(made[key])
     args = (fixed, steps, [t.arrays for t in _as_list(target)], psfs)
     key, keep = trace_key(model, datas, _as_list(target))
     stepper = program(("solve", key, tuple(free), tuple(p.bounds for p in params),
