@@ -5,7 +5,7 @@ fitted together (one pupil, rotation, wavefront and detector; each star its own 
 flux and background: ``difstar.fitting.fit_joint``), each count in a fresh process with
 JAX's compilation cache off (every program traced and compiled, as on a first run).
 
-    python benchmarks/joint_stars.py [--stars 1,2,4,8]
+    python benchmarks/joint_stars.py [--stars 1,2,4,8] [--manifest MANIFEST]
 
 Prints one Markdown table (BENCHMARKS.md, "Several stars: cost against their number"):
 wall time of the fit (imports excluded), peak memory of the process, the rotation and
@@ -43,11 +43,11 @@ print(json.dumps({"seconds": t, "rotation": res.values["rotation"],
 """
 
 
-def run(n: int) -> dict:
+def run(n: int, manifest: Path) -> dict:
     env = dict(os.environ, DIFSTAR_COMPILATION_CACHE="off")
     moves = json.dumps(MOVES[:n - 1])
     t0 = time.perf_counter()
-    out = subprocess.run([sys.executable, "-c", _CHILD, str(MANIFEST), moves], env=env,
+    out = subprocess.run([sys.executable, "-c", _CHILD, str(manifest), moves], env=env,
                          capture_output=True, text=True, check=True)
     row = json.loads(out.stdout.strip().splitlines()[-1])
     row["process"] = time.perf_counter() - t0
@@ -56,6 +56,8 @@ def run(n: int) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--manifest", default=str(MANIFEST.relative_to(ROOT)),
+                    help="the star's manifest (default: the Spitzer star's automatic stages)")
     ap.add_argument("--stars", default="1,2,4,8",
                     help=f"comma-separated counts, each 1 to {len(MOVES) + 1}")
     a = ap.parse_args(argv)
@@ -64,7 +66,7 @@ def main(argv=None) -> int:
         ap.error(f"--stars: each count from 1 to {len(MOVES) + 1}")
     rows = []
     for n in counts:
-        rows.append((n, run(n)))
+        rows.append((n, run(n, ROOT / a.manifest)))
         print(f"{n} stars: {rows[-1][1]['seconds']:.1f} s", file=sys.stderr, flush=True)
     one = rows[0][1]["seconds"] / rows[0][0] if rows else 1.0
     print("| stars | fit (s) | per star (s) | process (s) | peak RSS (GB) | rotation (°) "
@@ -76,8 +78,9 @@ def main(argv=None) -> int:
               f"{r['rss_kb'] / 2**20:.2f} | {r['rotation']:.4f} ± {err} | "
               f"{r['chi2_dof']:.3f} |")
     load = os.getloadavg()
-    print(f"\n{os.cpu_count()} CPUs, load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f} "
-          f"after the runs; first count's fit per star {one:.1f} s.")
+    print(f"\n{a.manifest}; {os.cpu_count()} CPUs, load average {load[0]:.1f} "
+          f"{load[1]:.1f} {load[2]:.1f} after the runs; first count's fit per star "
+          f"{one:.1f} s.")
     return 0
 
 
