@@ -1636,6 +1636,48 @@ def test_linear_parts_rebuild_the_residual_of_two_captures():
     assert np.allclose(np.asarray(r0) + np.asarray(a) @ beta, want, rtol=1e-10, atol=1e-9)
 
 
+def test_each_stars_flux_and_background_solved_alone_equal_the_joint_solve():
+    """Three stars each with their own flux and background in closed form: one 2 × 2
+    solve per star (``projected``) gives the residual and the values of the solve over
+    all six columns at once (the dense least squares), to 1e-10; where one flux is
+    shared, the dense solve is the one used."""
+    import jax.numpy as jnp
+
+    from difstar.fitting._residuals import (
+        _linear_parts,
+        _PixelTarget,
+        _residual_fn,
+        closed_form,
+        projected,
+    )
+
+    rng = np.random.default_rng(4)
+    clean = _numpy_star(**TRUE)
+    datas = [FitData.from_array(clean * f + b + rng.normal(0, 1.0, clean.shape), sigma=1.0,
+                                exposure=e)
+             for f, b, e in ((1.0, 2.0, 1.0), (0.3, -1.0, 2.0), (2.0, 0.5, 0.5))]
+    model = _model().for_captures(("x0", "y0", "flux", "background"), 3)
+    targets = [_PixelTarget(d) for d in datas]
+    res = _residual_fn(model, datas, targets)
+    arrays = [t.arrays for t in targets]
+    lin = ["flux@0", "flux@1", "flux@2", "background@0", "background@1", "background@2"]
+    v1 = {k: jnp.asarray(p.value, float) for k, p in model.params.items()} | {
+        q: jnp.asarray(1.0 if q.startswith("flux") else 0.0) for q in lin}
+    images = res(v1, arrays)[1]
+    r, beta = projected(model, lin, images, v1, arrays)
+    r_all, beta_all = closed_form(*_linear_parts(model, lin, images, v1, arrays))
+    np.testing.assert_allclose(beta, beta_all, rtol=1e-10)
+    np.testing.assert_allclose(r, r_all, rtol=1e-10, atol=1e-10 * float(jnp.abs(r_all).max()))
+    shared = _model().for_captures(("x0", "y0", "background"), 3)
+    lin2 = ["flux", "background@0", "background@1", "background@2"]
+    v2 = {k: jnp.asarray(p.value, float) for k, p in shared.params.items()} | {
+        "flux": jnp.asarray(1.0)} | {q: jnp.asarray(0.0) for q in lin2[1:]}
+    images2 = _residual_fn(shared, datas, targets)(v2, arrays)[1]
+    np.testing.assert_allclose(
+        projected(shared, lin2, images2, v2, arrays)[1],
+        closed_form(*_linear_parts(shared, lin2, images2, v2, arrays))[1], rtol=1e-12)
+
+
 def test_flux_in_closed_form_ends_where_the_solver_carrying_it_ends(synthetic):
     """The same fit of the independent star with flux and background taken in closed
     form (unbounded: projected) and carried by the solver (bounded): the same values to

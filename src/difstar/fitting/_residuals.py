@@ -220,14 +220,47 @@ def closed_form(r0, a):
     beta = -jnp.linalg.solve(an.T @ an, an.T @ r0) / scale
     return r0 + a @ beta, beta
 
-def _linear_parts(model: ImageModel, lin: Sequence[str], images, v1, arrays):
+def projected(model: ImageModel, lin: Sequence[str], images, v1, arrays):
+    """:func:`closed_form` of the ``lin`` values (:func:`_linear_parts`): where each is
+    one capture's own (``flux@i``, ``background@i``) and the captures are alike (the
+    stars of a field), one small solve per capture (``vmap``), whose columns are then
+    block-diagonal: the same answer without the dense (pixels × 2 stars) matrix of all
+    captures, which would grow as the square of the stars."""
+    own = _own_names(lin, len(images))
+    shapes = {(np.shape(m), tuple(np.shape(a) for a in arr)) for m, arr in zip(images, arrays)}
+    if own is None or len(shapes) > 1:
+        return closed_form(*_linear_parts(model, lin, images, v1, arrays))
+    parts = [_linear_parts(model, names, [m], v1, [arr], captures=[i])
+             for i, (names, m, arr) in enumerate(zip(own, images, arrays))]
+    r, beta = jax.vmap(closed_form)(jnp.stack([p[0] for p in parts]),
+                                    jnp.stack([p[1] for p in parts]))
+    where = {q: (i, j) for i, names in enumerate(own) for j, q in enumerate(names)}
+    return r.reshape(-1), jnp.stack([beta[where[q]] for q in lin])
+
+def _own_names(lin: Sequence[str], n: int):
+    """``lin`` grouped by capture (each capture's ``name@i`` in ``lin``'s order) where
+    every name is one capture's own and each of the ``n`` captures has the same names;
+    else None."""
+    own: list[list[str]] = [[] for _ in range(n)]
+    for q in lin:
+        base, _, i = q.partition("@")
+        if not i.isdigit() or int(i) >= n:
+            return None
+        own[int(i)].append(q)
+    bases = [[q.split("@")[0] for q in names] for names in own]
+    return own if n > 1 and all(b == bases[0] for b in bases) and bases[0] else None
+
+def _linear_parts(model: ImageModel, lin: Sequence[str], images, v1, arrays, *,
+                  captures: Sequence[int] | None = None):
     """(r0, A) of the pixel residuals as an affine function of the ``lin`` values, from
     each capture's model image at ``v1`` (those fluxes at 1, backgrounds at 0): the image
     is flux · (exposure · PSF) + background, so the flux's column is the image less its
     background, the background's the weights, over the captures each name serves
-    (``flux`` all of them, ``flux@i`` capture i)."""
+    (``flux`` all of them, ``flux@i`` capture i). ``captures``: the captures' indices
+    (default 0, 1, …), for a subset of them."""
     r0s, cols = [], [[] for _ in lin]
-    for i, (m, (img, wgt)) in enumerate(zip(images, arrays)):
+    captures = range(len(images)) if captures is None else captures
+    for i, m, (img, wgt) in zip(captures, images, arrays):
         b = model.capture_values(v1, i)["background"]
         shape = m - b  # flux × exposure × PSF (flux 1 where projected)
         serves = [q == q.split("@")[0] or q == f"{q.split('@')[0]}@{i}" for q in lin]

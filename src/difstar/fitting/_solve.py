@@ -26,11 +26,10 @@ from ._params import FitInputError, _from_u, _to_u
 from ._programs import program, trace_key
 from ._residuals import (
     _as_list,
-    _linear_parts,
     _PixelTarget,
     _residual_fn,
-    closed_form,
     column_blocks,
+    projected,
 )
 
 
@@ -187,8 +186,7 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
                 return res(v, arrays, psfs)[0], jnp.zeros(0)
             v1 = {**v, **{q: jnp.asarray(1.0 if q.split("@")[0] == "flux" else 0.0)
                           for q in lin}}
-            return closed_form(*_linear_parts(model, lin, res(v1, arrays, psfs)[1], v1,
-                                              arrays))
+            return projected(model, lin, res(v1, arrays, psfs)[1], v1, arrays)
 
         # the Jacobian a few columns at a time (bounded memory); one trace, shared by
         # the solver's init and step; the closed-form values ride along as the
