@@ -15,6 +15,7 @@ from ._centred import fine_factor, image_from_centred, image_from_psf, optics_fi
 from ._data import FitData, _angle_from, _polar
 from ._model import ImageModel
 from ._params import FitInputError
+from ._programs import _light_key
 
 
 class _PixelTarget:
@@ -152,18 +153,12 @@ def alike_captures(datas, targets) -> bool:
     d0, t0 = datas[0], targets[0]
 
     def arrays_shape(t):
-        return [(np.shape(a), np.asarray(a).dtype) for a in jax.tree_util.tree_leaves(t.arrays)]
+        return [(np.shape(a), a.dtype) for a in jax.tree_util.tree_leaves(t.arrays)]
 
-    return all(d.image.shape == d0.image.shape and _same_light(d.light, d0.light)
+    return all(d.image.shape == d0.image.shape and _light_key(d.light) == _light_key(d0.light)
                and type(t) is type(t0) and t.signature == t0.signature
                and t.size == t0.size and arrays_shape(t) == arrays_shape(t0)
                for d, t in zip(datas, targets))
-
-def _same_light(a, b) -> bool:
-    if a is None or b is None:
-        return a is b
-    return (np.array_equal(np.asarray(a.wavelengths, float), np.asarray(b.wavelengths, float))
-            and np.array_equal(np.asarray(a.weights, float), np.asarray(b.weights, float)))
 
 def _mapped_residual_fn(model: ImageModel, datas, targets, image, plan, q):
     """:func:`_residual_fn` of captures :func:`alike_captures` finds alike: one
@@ -172,7 +167,7 @@ def _mapped_residual_fn(model: ImageModel, datas, targets, image, plan, q):
     captures' order, and the model images. Where the captures' own values all act after
     the optics, their PSF is computed once per call and moved to each star."""
     n, t0, d0 = len(datas), targets[0], datas[0]
-    per = [k for k in model.per_capture]
+    per = list(model.per_capture)
     exposures = np.asarray([d.exposure for d in datas], float)
     # the stars' own values act after the optics (their centres, fluxes, backgrounds):
     # one PSF at the window's centre, the optics' shared values, serves them all, each

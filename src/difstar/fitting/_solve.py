@@ -23,7 +23,7 @@ from ._centred import centred_psf, optics_fixed
 from ._data import FitData
 from ._model import ImageModel
 from ._params import FitInputError, _from_u, _to_u
-from ._programs import program, trace_key
+from ._programs import _light_key, program, trace_key
 from ._residuals import (
     _as_list,
     _PixelTarget,
@@ -211,13 +211,12 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
     psfs = None
     if optics_fixed(model, model.free):
         at = model.values()
+        # one PSF for the captures whose own values all act after the optics and whose
+        # windows and light are one (the stars of a field)
+        shared = optics_fixed(model, model.per_capture)
         psfs, made = [], {}
         for i, d in enumerate(datas):
-            # one PSF for the captures whose own values all act after the optics and
-            # whose windows and light are one (the stars of a field)
-            key = (i,) if not optics_fixed(model, model.per_capture) else (
-                d.image.shape, None if d.light is None else tuple(d.light.wavelengths),
-                None if d.light is None else tuple(d.light.weights))
+            key = (d.image.shape, _light_key(d.light)) if shared else i
             if key not in made:
                 made[key] = jnp.asarray(centred_psf(model, model.capture_values(at, i),
                                                     d.image.shape, d.light))
