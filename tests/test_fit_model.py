@@ -45,7 +45,9 @@ def test_configurations_on_one_grid_are_one_map_with_the_chains_values_and_slope
             one = eqx.tree_at(lambda s: (s.exposure_time, s.sources[0].position), scene,
                               (jnp.asarray(t), pos[j]))
             want = np.asarray(difstar.simulate(camera, one, grid).cfa)
-            np.testing.assert_allclose(np.asarray(pred[cfg.name][j]), want, rtol=1e-12,
+            # to rounding: the fit's prediction is compiled with the solver's XLA
+            # options (difstar._xla), which order some sums otherwise
+            np.testing.assert_allclose(np.asarray(pred[cfg.name][j]), want, rtol=1e-11,
                                        atol=1e-15, err_msg=f"{cfg.name} capture {j}")
     args = F.make_args(model, data)
     jac = np.asarray(fitter._jac(u, args))
