@@ -638,3 +638,37 @@ def test_a_model_not_finite_at_the_start_is_named(monkeypatch):
                         lambda self, *a, **k: image(self, *a, **k) * jnp.nan)
     with pytest.raises(FitInputError, match="not finite at the answer; check the units"):
         fit(model, data, stages=[{"free": ["x0", "flux"], "max_steps": 5}])
+
+
+def test_joint_fit_too_large_for_memory_is_refused_saying_how_many_fit(monkeypatch):
+    """Captures fitted together (the stars of a field): the solver holds every pixel by
+    every free parameter, which grows as the square of the captures, and nothing bounded
+    it (a joint fit's check counted one window). Against DIFSTAR_MEMORY_LIMIT between
+    the estimates for 8 and 9 captures, 40 captures are refused before any compile,
+    naming the captures, the fix (per_capture, roi) and how many fit together; 8 pass
+    the check."""
+    from difstar.fitting import FitData, ImageModel, Light, Param, fit, obstructed_circle_pupil
+    from difstar.fitting._stages import fit_memory
+
+    per = ("x0", "y0", "flux", "background")
+    model = ImageModel(obstructed_circle_pupil(), {
+        "pixel_scale": Param(0.6), "x0": Param(0.0, True, (-2.0, 2.0)),
+        "y0": Param(0.0, True, (-2.0, 2.0)), "rotation": Param(3.0, True, (-30.0, 30.0)),
+        "flux": Param(50.0, True, scale=10.0), "background": Param(0.5, True, scale=1.0)},
+        light=Light.monochromatic(3.6e-6), pad=4)
+    rng = np.random.default_rng(0)
+    datas = [FitData.from_array(rng.random((25, 25)), sigma=0.05) for _ in range(40)]
+    need = [fit_memory(model.for_captures(per, n), datas[:n]) for n in (1, 8, 9, 20, 40)]
+    # a lower estimate that grows with the captures, faster than their number (20 more
+    # captures after 20 cost more than 20/19 of the 19 more after 1)
+    assert need[0] > 0 and need[1] < need[2] < need[3] < need[4]
+    assert need[4] - need[3] > 1.1 * 20 / 19 * (need[3] - need[0])
+    monkeypatch.setenv("DIFSTAR_MEMORY_LIMIT", str(int((need[1] + need[2]) / 2)))
+    with pytest.raises(FitInputError) as e:
+        fit(model, datas)
+    msg = str(e.value)
+    for part in ("40 captures together", "memory", "DIFSTAR_MEMORY_LIMIT",
+                 "at most 8 of them together", "per_capture", "roi"):
+        assert part in msg, (part, msg)
+    from difstar.fitting._stages import _check_fit_memory
+    _check_fit_memory(model.for_captures(per, 8), datas[:8])  # 8 pass

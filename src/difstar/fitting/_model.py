@@ -452,13 +452,22 @@ class ImageModel(ForwardModel):
         """The model image (H, W) in data pixels for parameter values ``v`` (a dict of
         scalars, traceable), for a capture of relative ``exposure`` in ``light`` (default:
         the model's)."""
+        img, q = self.window_psf(v, shape, plan, light)
+        return image_from_psf(self, img, v, shape, q, exposure)
+
+    def window_psf(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None,
+                   light: Light | None = None, *, shift: bool = True):
+        """(the PSF, q): :meth:`optics` on the padded window of a capture of ``shape``
+        data pixels, sampled q (:func:`fine_factor`) times a data pixel a side, with the
+        window's plans (``plan``: the whole pupil's, default :meth:`plan`'s). ``shift``:
+        moved to (``x0``, ``y0``); False: at the window's centre, one PSF for several
+        stars, each moved by ``image_from_psf(move=True)``."""
         light = self.light if light is None else light
         hp, wp = self.padded_shape(shape)
         plan = self.plan((hp, wp), light) if plan is None else plan
         q = fine_factor(self, light)
         seg = self.plan((hp, wp), light, segment=True) if self.has_incoherent else None
-        img = self.optics(v, light, (hp * q, wp * q), q, plans=(plan, seg))
-        return image_from_psf(self, img, v, shape, q, exposure)
+        return self.optics(v, light, (hp * q, wp * q), q, plans=(plan, seg), shift=shift), q
 
     def _wavefront_and_grid(self, v, light: Light, fine_shape, q: int):
         """The Zernike wavefront at values ``v`` (None without terms) and the window's

@@ -174,8 +174,6 @@ def _mapped_residual_fn(model: ImageModel, datas, targets, image, plan, q):
     # star moved by a phase ramp of its spectrum (image_from_psf)
     shared = optics_fixed(model, per)
     light = model.light if d0.light is None else d0.light
-    hp, wp = model.padded_shape(d0.image.shape)
-    seg = model.plan((hp, wp), light, segment=True) if model.has_incoherent else None
 
     def res(v, arrays=None, psfs=None):
         arrays = [t.arrays for t in targets] if arrays is None else arrays
@@ -184,8 +182,7 @@ def _mapped_residual_fn(model: ImageModel, datas, targets, image, plan, q):
               None if psfs is None else jnp.stack(psfs), jnp.asarray(exposures))
         centre = None
         if psfs is None and shared:
-            centre = model.optics(v, light, (hp * q, wp * q), q, plans=(plan, seg),
-                                  shift=False)
+            centre, _ = model.window_psf(v, d0.image.shape, plan, light, shift=False)
 
         def one(x):
             own, a, psf, exposure = x

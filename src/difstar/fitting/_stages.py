@@ -366,31 +366,82 @@ def _check_fit_inputs(model: ImageModel, datas: Sequence[FitData], stages: Seque
 #: on the Spitzer campaign (fit/spitzer-irac: 81² pixels, 17 free, measured peak 9.4 GB
 #: against psf_bytes × 19 = 0.47 GB), rounded down so that the estimate stays a lower one
 _JACOBIAN_FACTOR = 8
+#: captures fitted together (the stars of a field): the solver holds the Jacobian whole,
+#: every capture's pixels by every free parameter (float64), about this many times at
+#: once (its state's, its step's, the factorisation's), and each capture's own
+#: linearisation about ``_PER_CAPTURE_FACTOR`` × its window's psf_bytes. Measured on the
+#: Spitzer star with 16, 40, 80 and 120 copies (peak RSS 0.87, 1.65, 3.9 and 7.5 GB;
+#: Jacobian 0.07, 0.36, 1.4 and 3.1 GB): 1.75–1.8 and 3.7, rounded down so that the
+#: estimate stays a lower one (0.70, 1.37, 3.28 and 6.20 GB)
+_DENSE_JACOBIAN_COPIES = 1.5
+_PER_CAPTURE_FACTOR = 3
 
-def _check_fit_memory(model: ImageModel, datas: Sequence[FitData]) -> None:
-    """Refuse (before any compile) a fit whose Jacobian cannot fit in memory: the
-    largest capture's padded window, its plan, the free parameters; the estimate is a
-    lower one, so a refused fit would certainly not have fitted."""
+
+def fit_memory(model: ImageModel, datas: Sequence[FitData]) -> float:
+    """A lower estimate of a fit's peak memory (bytes) from its shapes alone: the
+    Jacobian's columns through the chain on the largest capture's padded window and,
+    for captures fitted together, each capture's linearisation and the whole Jacobian
+    (every capture's pixels by every free parameter, which grows as the square of the
+    captures). 0 where the window cannot be planned (the fit's first step reports
+    that, named)."""
     h, w = max((d.image.shape for d in datas), key=lambda s: s[0] * s[1])
     shape = model.padded_shape((h, w))
     try:
         plan = model.plan(shape)
         one = psf_bytes(plan, shape, 1, _edges(model.concrete_pupil()), _PITCH)
-    except (ValueError, TypeError):  # the fit's own first step reports these, named
-        return
-    k = len(model.free)
+    except (ValueError, TypeError):
+        return 0.0
+    free = list(model.free)
+    n = len(datas)
+    # each capture's own parameters (name@i) and the shared ones; several captures' own
+    # columns share their directions (the Jacobian compressed)
+    shared = sum("@" not in q for q in free)
+    own = sum(q.endswith("@0") for q in free)
+    params = shared + own * n if model.per_capture else len(free)
+    k = params if n == 1 else shared + own
     need = _JACOBIAN_FACTOR * (k + 2) * one * (2 if model.has_incoherent else 1)
+    if n > 1:
+        pixels = sum(int(d.image.size) for d in datas)
+        need += _PER_CAPTURE_FACTOR * one * n + _DENSE_JACOBIAN_COPIES * 8 * pixels * params
+    return float(need)
+
+
+def _check_fit_memory(model: ImageModel, datas: Sequence[FitData]) -> None:
+    """Refuse (before any compile) a fit that cannot fit in memory (:func:`fit_memory`,
+    a lower estimate, so a refused fit would certainly not have fitted)."""
+    need = fit_memory(model, datas)
     budget = memory_budget()
-    if need > budget:
-        side = max(8, int(min(h, w) * math.sqrt(budget / need)))
+    if need <= budget:
+        return
+    h, w = max((d.image.shape for d in datas), key=lambda s: s[0] * s[1])
+    shape = model.padded_shape((h, w))
+    k = len(model.free)
+    n = len(datas)
+    if n > 1:
+        fits = max((m for m in range(1, n) if fit_memory(model, datas[:m]) <= budget),
+                   default=0)
         raise _InputAt(
-            ("data",), f"fitting {k} free parameters on the {h} × {w} pixel window (padded to "
-            f"{shape[0]} × {shape[1]}) needs at least {fmt_bytes(need)} of memory, more than "
-            f"the {fmt_bytes(budget)} available (DIFSTAR_MEMORY_LIMIT overrides); give a "
-            f"smaller roi (about {side} × {side} may fit), fewer free parameters, or a "
-            "larger accuracy.", f"fit: the Jacobian needs at least {fmt_bytes(need)}, more "
-            f"than the {fmt_bytes(budget)} available; fit a smaller window (roi) or fewer "
-            "free parameters.")
+            ("data",), f"fitting {n} captures together ({k} free parameters, "
+            f"{sum(int(d.image.size) for d in datas)} pixels) needs at least "
+            f"{fmt_bytes(need)} of memory, more than the {fmt_bytes(budget)} available "
+            "(DIFSTAR_MEMORY_LIMIT overrides): the solver holds every pixel by every "
+            "parameter, which grows as the square of the captures; fit "
+            + (f"at most {fits} of them together, " if fits > 1 else "them one by one, ")
+            + "smaller windows (roi), or fewer parameters per capture (per_capture).",
+            f"fit: {n} captures together need at least {fmt_bytes(need)} of memory, more "
+            f"than the {fmt_bytes(budget)} available (DIFSTAR_MEMORY_LIMIT overrides); fit "
+            + (f"at most {fits} of them together, " if fits > 1 else "them one by one, ")
+            + "smaller windows (roi) or fewer per_capture parameters.")
+    side = max(8, int(min(h, w) * math.sqrt(budget / need)))
+    raise _InputAt(
+        ("data",), f"fitting {k} free parameters on the {h} × {w} pixel window (padded to "
+        f"{shape[0]} × {shape[1]}) needs at least {fmt_bytes(need)} of memory, more than "
+        f"the {fmt_bytes(budget)} available (DIFSTAR_MEMORY_LIMIT overrides); give a "
+        f"smaller roi (about {side} × {side} may fit), fewer free parameters, or a "
+        "larger accuracy.", f"fit: the Jacobian needs at least {fmt_bytes(need)}, more "
+        f"than the {fmt_bytes(budget)} available; fit a smaller window (roi) or fewer "
+        "free parameters.")
+
 
 def _put(model: ForwardModel, put: Mapping[str, Any], where: str) -> dict[str, float]:
     """``put`` (name → value) checked against ``model`` (known names, finite numbers)
