@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._ahead import Ahead
-from .._lm import LMStepper, normal_covariance, with_batched_jacobian
+from .._lm import BlockColumns, LMStepper, normal_covariance, with_batched_jacobian
 from .._param import bound_map_slope, step_map
 from .._progress import moved_most, step_bar
 from .._xla import solver_jit_options
@@ -195,10 +195,12 @@ def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,
         # a star's own parameters (of a field's several) in directions shared with the
         # other stars' (column_blocks): the Jacobian's cost grows with the stars, not
         # with their square
-        residuals = jax.jit(with_batched_jacobian(
-            residuals_and_linear, has_aux=True,
-            blocks=column_blocks(model, free, target, lin)))
-        return LMStepper(residuals, has_aux=True)  # tolerances: each solve's own
+        # (and their normal equations then from those directions: BlockColumns)
+        blocks = column_blocks(model, free, target, lin)
+        residuals = jax.jit(with_batched_jacobian(residuals_and_linear, has_aux=True,
+                                                  blocks=blocks))
+        # tolerances: each solve's own
+        return LMStepper(residuals, has_aux=True, structure=BlockColumns.of(blocks))
 
     # the fixed values, the unbounded parameters' starts and the data are the solver's
     # arguments, not constants of its program: the same stage run again (a repeat's

@@ -368,13 +368,15 @@ def _check_fit_inputs(model: ImageModel, datas: Sequence[FitData], stages: Seque
 _JACOBIAN_FACTOR = 8
 #: captures fitted together (the stars of a field): the solver holds the Jacobian whole,
 #: every capture's pixels by every free parameter (float64), about this many times at
-#: once (its state's, its step's, the factorisation's), and each capture's own
-#: linearisation about ``_PER_CAPTURE_FACTOR`` × its window's psf_bytes. Measured on the
-#: Spitzer star with 16, 40, 80 and 120 copies (peak RSS 0.87, 1.65, 3.9 and 7.5 GB;
-#: Jacobian 0.07, 0.36, 1.4 and 3.1 GB): 1.75–1.8 and 3.7, rounded down so that the
-#: estimate stays a lower one (0.70, 1.37, 3.28 and 6.20 GB)
-_DENSE_JACOBIAN_COPIES = 1.5
-_PER_CAPTURE_FACTOR = 3
+#: once, and each capture's own linearisation about ``_PER_CAPTURE_FACTOR`` × its
+#: window's psf_bytes. Measured on the Spitzer star with 16, 40, 80 and 120 copies, its
+#: steps from the block normal equations (difstar._lm.NormalDescent): peak RSS 0.84,
+#: 1.20, 2.44 and 4.28 GB for Jacobians of 0.07, 0.36, 1.4 and 3.1 GB, about 0.9 copies
+#: and 2.5 × psf_bytes a star (with optimistix's QR instead, where a fit's Jacobian has
+#: no such structure, 1.75 copies: 0.87, 1.65, 3.9 and 7.5 GB); rounded down, so that
+#: the estimate stays a lower one (0.61, 0.99, 2.06 and 3.66 GB)
+_DENSE_JACOBIAN_COPIES = 0.8
+_PER_CAPTURE_FACTOR = 2
 
 
 def fit_memory(model: ImageModel, datas: Sequence[FitData]) -> float:
