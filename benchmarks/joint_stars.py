@@ -43,11 +43,22 @@ print(json.dumps({"seconds": t, "rotation": res.values["rotation"],
 """
 
 
+#: the most stars a run takes
+MOST = 200
+
+
+def moves(n: int) -> list[tuple[float, float]]:
+    """The moves of ``n`` copies: :data:`MOVES`, then a grid of tenths of a pixel."""
+    extra = [(round(0.1 * (k % 9) - 0.4, 2), round(0.1 * (k // 9 % 9) - 0.4, 2))
+             for k in range(max(0, n - len(MOVES)))]
+    return (list(MOVES) + extra)[:n]
+
+
 def run(n: int, manifest: Path) -> dict:
     env = dict(os.environ, DIFSTAR_COMPILATION_CACHE="off")
-    moves = json.dumps(MOVES[:n - 1])
+    moves_json = json.dumps(moves(n - 1))
     t0 = time.perf_counter()
-    out = subprocess.run([sys.executable, "-c", _CHILD, str(manifest), moves], env=env,
+    out = subprocess.run([sys.executable, "-c", _CHILD, str(manifest), moves_json], env=env,
                          capture_output=True, text=True, check=True)
     row = json.loads(out.stdout.strip().splitlines()[-1])
     row["process"] = time.perf_counter() - t0
@@ -59,11 +70,11 @@ def main(argv=None) -> int:
     ap.add_argument("--manifest", default=str(MANIFEST.relative_to(ROOT)),
                     help="the star's manifest (default: the Spitzer star's automatic stages)")
     ap.add_argument("--stars", default="1,2,4,8",
-                    help=f"comma-separated counts, each 1 to {len(MOVES) + 1}")
+                    help=f"comma-separated counts, each 1 to {MOST}")
     a = ap.parse_args(argv)
     counts = [int(c) for c in a.stars.split(",") if c.strip()]
-    if any(not 1 <= c <= len(MOVES) + 1 for c in counts):
-        ap.error(f"--stars: each count from 1 to {len(MOVES) + 1}")
+    if any(not 1 <= c <= MOST for c in counts):
+        ap.error(f"--stars: each count from 1 to {MOST}")
     rows = []
     for n in counts:
         rows.append((n, run(n, ROOT / a.manifest)))
