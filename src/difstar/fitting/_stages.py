@@ -369,12 +369,13 @@ _JACOBIAN_FACTOR = 8
 #: captures fitted together (the stars of a field): the solver holds the Jacobian whole,
 #: every capture's pixels by every free parameter (float64), about this many times at
 #: once, and each capture's own linearisation about ``_PER_CAPTURE_FACTOR`` × its
-#: window's psf_bytes. Measured on the Spitzer star with 16, 40, 80 and 120 copies, its
-#: steps from the block normal equations (difstar._lm.NormalDescent): peak RSS 0.84,
-#: 1.20, 2.44 and 4.28 GB for Jacobians of 0.07, 0.36, 1.4 and 3.1 GB, about 0.9 copies
-#: and 2.5 × psf_bytes a star (with optimistix's QR instead, where a fit's Jacobian has
-#: no such structure, 1.75 copies: 0.87, 1.65, 3.9 and 7.5 GB); rounded down, so that
-#: the estimate stays a lower one (0.61, 0.99, 2.06 and 3.66 GB)
+#: window's psf_bytes. Measured on the Spitzer star with 16, 40, 80 and 120 copies
+#: (``python benchmarks/joint_stars.py --stars 16,40,80,120``), its steps from the block
+#: normal equations (difstar._lm.NormalDescent): peak RSS 0.80, 1.16, 2.34 and 4.05 GB
+#: for Jacobians of 0.07, 0.36, 1.4 and 3.1 GB, about 0.9 copies and 2.5 × psf_bytes a
+#: star (with optimistix's QR, where a Jacobian has no such structure, about 1.75
+#: copies: 0.89, 1.54, 3.78 and 7.03 GB); rounded down, so that the estimate stays a
+#: lower one (0.61, 0.99, 2.06 and 3.66 GB)
 _DENSE_JACOBIAN_COPIES = 0.8
 _PER_CAPTURE_FACTOR = 2
 
