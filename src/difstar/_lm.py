@@ -213,8 +213,10 @@ class BlockColumns:
         if blocks is None:
             return None
         owners, rows = blocks
-        rows = np.asarray(rows) if not isinstance(rows, (list, tuple)) else None
-        if rows is None or rows.ndim != 1 or rows.size == 0:
+        if isinstance(rows, (list, tuple)):  # a row array per output: not one vector
+            return None
+        rows = np.asarray(rows)
+        if rows.ndim != 1 or rows.size == 0:
             return None
         n_blocks = int(rows.max()) + 1
         if rows.size % n_blocks or not np.array_equal(
@@ -275,7 +277,9 @@ class NormalDescent(optx.AbstractDescent):
     block structure (:func:`normal_equations`): made once per accepted point, then each
     tried step size is a P × P solve, where optimistix's QR of the (pixels + P) × P
     system costs pixels × P² every try. Column-scaled for the solve (parameters of
-    any units compare)."""
+    any units compare); λ > 0 keeps the system positive definite, and a near-singular
+    one (λ tiny, a direction the data do not determine) gives a long step, which the
+    trust region rejects and shortens."""
 
     structure: BlockColumns = eqx.field(static=True)
 
@@ -513,7 +517,6 @@ class LMStepper:
             return sol.init(wrapped, u, a, {}, f_struct, aux_struct, tags)
 
         def step(sol, u, state, a):
-            structure = getattr(sol.search, "structure", None)
             accepted_before = state.num_accepted_steps
             u, state, _ = sol.step(wrapped, u, a, {}, state, tags)
             done, res = sol.terminate(wrapped, u, a, {}, state, tags)

@@ -387,54 +387,63 @@ def fit_memory(model: ImageModel, datas: Sequence[FitData]) -> float:
     (every capture's pixels by every free parameter, which grows as the square of the
     captures). 0 where the window cannot be planned (the fit's first step reports
     that, named)."""
+    return _memory_of_first(model, datas)(len(datas))
+
+
+def _memory_of_first(model: ImageModel, datas: Sequence[FitData]):
+    """:func:`fit_memory` of the first m of ``datas`` fitted together, as a function of
+    m (the window planned once)."""
     h, w = max((d.image.shape for d in datas), key=lambda s: s[0] * s[1])
     shape = model.padded_shape((h, w))
     try:
         plan = model.plan(shape)
         one = psf_bytes(plan, shape, 1, _edges(model.concrete_pupil()), _PITCH)
     except (ValueError, TypeError):
-        return 0.0
+        return lambda m: 0.0
     free = list(model.free)
-    n = len(datas)
     # each capture's own parameters (name@i) and the shared ones; several captures' own
     # columns share their directions (the Jacobian compressed)
     shared = sum("@" not in q for q in free)
     own = sum(q.endswith("@0") for q in free)
-    params = shared + own * n if model.per_capture else len(free)
-    k = params if n == 1 else shared + own
-    need = _JACOBIAN_FACTOR * (k + 2) * one * (2 if model.has_incoherent else 1)
-    if n > 1:
-        pixels = sum(int(d.image.size) for d in datas)
-        need += _PER_CAPTURE_FACTOR * one * n + _DENSE_JACOBIAN_COPIES * 8 * pixels * params
-    return float(need)
+    pixels = np.cumsum([int(d.image.size) for d in datas])
+    window = one * (2 if model.has_incoherent else 1)
+
+    def need(m: int) -> float:
+        params = shared + own * m if model.per_capture else len(free)
+        out = _JACOBIAN_FACTOR * ((params if m == 1 else shared + own) + 2) * window
+        if m > 1:
+            out += (_PER_CAPTURE_FACTOR * one * m
+                    + _DENSE_JACOBIAN_COPIES * 8 * int(pixels[m - 1]) * params)
+        return float(out)
+
+    return need
 
 
 def _check_fit_memory(model: ImageModel, datas: Sequence[FitData]) -> None:
     """Refuse (before any compile) a fit that cannot fit in memory (:func:`fit_memory`,
     a lower estimate, so a refused fit would certainly not have fitted)."""
-    need = fit_memory(model, datas)
+    need_of = _memory_of_first(model, datas)
+    n = len(datas)
+    need = need_of(n)
     budget = memory_budget()
     if need <= budget:
         return
     h, w = max((d.image.shape for d in datas), key=lambda s: s[0] * s[1])
     shape = model.padded_shape((h, w))
     k = len(model.free)
-    n = len(datas)
     if n > 1:
-        fits = max((m for m in range(1, n) if fit_memory(model, datas[:m]) <= budget),
-                   default=0)
+        fits = max((m for m in range(1, n) if need_of(m) <= budget), default=0)
+        fix = (f"at most {fits} of them together, " if fits > 1 else "them one by one, ")
         raise _InputAt(
             ("data",), f"fitting {n} captures together ({k} free parameters, "
             f"{sum(int(d.image.size) for d in datas)} pixels) needs at least "
             f"{fmt_bytes(need)} of memory, more than the {fmt_bytes(budget)} available "
             "(DIFSTAR_MEMORY_LIMIT overrides): the solver holds every pixel by every "
-            "parameter, which grows as the square of the captures; fit "
-            + (f"at most {fits} of them together, " if fits > 1 else "them one by one, ")
-            + "smaller windows (roi), or fewer parameters per capture (per_capture).",
+            f"parameter, which grows as the square of the captures; fit {fix}smaller "
+            "windows (roi), or fewer parameters per capture (per_capture).",
             f"fit: {n} captures together need at least {fmt_bytes(need)} of memory, more "
             f"than the {fmt_bytes(budget)} available (DIFSTAR_MEMORY_LIMIT overrides); fit "
-            + (f"at most {fits} of them together, " if fits > 1 else "them one by one, ")
-            + "smaller windows (roi) or fewer per_capture parameters.")
+            f"{fix}smaller windows (roi) or fewer per_capture parameters.")
     side = max(8, int(min(h, w) * math.sqrt(budget / need)))
     raise _InputAt(
         ("data",), f"fitting {k} free parameters on the {h} × {w} pixel window (padded to "
