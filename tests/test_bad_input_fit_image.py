@@ -657,7 +657,7 @@ def test_joint_fit_too_large_for_memory_is_refused_saying_how_many_fit(monkeypat
         "flux": Param(50.0, True, scale=10.0), "background": Param(0.5, True, scale=1.0)},
         light=Light.monochromatic(3.6e-6), pad=4)
     rng = np.random.default_rng(0)
-    datas = [FitData.from_array(rng.random((25, 25)), sigma=0.05) for _ in range(40)]
+    datas = [FitData.from_array(rng.random((41, 41)), sigma=0.05) for _ in range(40)]
     need = [fit_memory(model.for_captures(per, n), datas[:n]) for n in (1, 8, 9, 20, 40)]
     # a lower estimate that grows with the captures, faster than their number (20 more
     # captures after 20 cost more than 20/19 of the 19 more after 1)

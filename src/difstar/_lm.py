@@ -242,18 +242,32 @@ def normal_equations(info, structure: BlockColumns | None = None):
     if structure is None:
         jac = info.jac.as_matrix()
         return jac.T @ jac, jac.T @ r
-    colour = np.asarray(structure.colour)
-    owner = np.asarray(structure.owner)
-    n_dir, p = int(colour.max()) + 1, colour.size
-    seeds = np.zeros((n_dir, p))
-    seeds[colour, np.arange(p)] = 1.0
+    seeds = direction_seeds(structure)
 
     def along(seed):
         out = info.jac.mv(seed)
         return jnp.concatenate([jnp.ravel(x) for x in jax.tree_util.tree_leaves(out)])
 
+    return block_normal_equations(jax.vmap(along)(jnp.asarray(seeds, r.dtype)), r,
+                                  structure)
+
+
+def direction_seeds(structure: BlockColumns) -> np.ndarray:
+    """The compressed directions (G, P): each the sum of its columns' unit vectors."""
+    colour = np.asarray(structure.colour)
+    seeds = np.zeros((int(colour.max()) + 1, colour.size))
+    seeds[colour, np.arange(colour.size)] = 1.0
+    return seeds
+
+
+def block_normal_equations(jc, r, structure: BlockColumns):
+    """(JᵀJ, Jᵀr) from the Jacobian along the compressed directions ``jc`` (G, rows:
+    J times each of :func:`direction_seeds`) and the residuals ``r`` (rows), for a
+    Jacobian of that ``structure`` (:func:`normal_equations`)."""
+    colour = np.asarray(structure.colour)
+    owner = np.asarray(structure.owner)
     b, n = structure.blocks, structure.size
-    jc = jax.vmap(along)(jnp.asarray(seeds, r.dtype)).reshape(n_dir, b, n)
+    jc = jc.reshape(-1, b, n)
     gram = jnp.einsum("gbn,hbn->bgh", jc, jc)  # (B, G, G)
     gb = jnp.einsum("gbn,bn->bg", jc, r.reshape(b, n))  # (B, G)
     ci, cj = colour[:, None], colour[None, :]
@@ -314,8 +328,13 @@ def normal_covariance(jac):
     difstar fit (RAW captures in the solver's unbounded coordinates, star images in
     physical ones)."""
     jac = np.asarray(jac)
-    jtj = jac.T @ jac
-    colnorm = np.sqrt(np.diag(jtj))
+    return normal_covariance_of(jac.T @ jac)
+
+
+def normal_covariance_of(jtj):
+    """:func:`normal_covariance` from the normal matrix JᵀJ itself (NumPy, P × P)."""
+    jtj = np.asarray(jtj)
+    colnorm = np.sqrt(np.maximum(np.diag(jtj), 0.0))
     dscale = np.where(colnorm > 0, 1.0 / np.where(colnorm > 0, colnorm, 1.0), 0.0)
     cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * jtj * dscale[None, :],
                                            rcond=1e-12) * dscale[None, :]

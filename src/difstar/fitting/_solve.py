@@ -15,7 +15,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._ahead import Ahead
-from .._lm import BlockColumns, LMStepper, normal_covariance, with_batched_jacobian
+from .._lm import (
+    JAC_BATCH,
+    BlockColumns,
+    LMStepper,
+    block_normal_equations,
+    direction_seeds,
+    normal_covariance,
+    normal_covariance_of,
+    with_batched_jacobian,
+)
 from .._param import bound_map_slope, step_map
 from .._progress import moved_most, step_bar
 from .._xla import solver_jit_options
@@ -277,9 +286,10 @@ def _linearised(stepper, sol, lin, slope):
 
 
 def _jacobian_program(model: ImageModel, data, values: Mapping[str, float], target,
-                      residual: bool):
-    """(program, x, args) of :func:`_jacobian`: the kept program (an :class:`Ahead`,
-    which may have been compiled ahead) and its arguments at ``values``."""
+                      residual: bool, *, normal: bool = False):
+    """(program, x, args) of :func:`_jacobian` (``normal``: of :func:`_normal_matrix`'s
+    block structure): the kept program (an :class:`Ahead`, which may have been compiled
+    ahead) and its arguments at ``values``."""
     free = model.free
     base = {k: jnp.asarray(v, float) for k, v in values.items()}
 
@@ -297,6 +307,19 @@ def _jacobian_program(model: ImageModel, data, values: Mapping[str, float], targ
             batched = with_batched_jacobian(lambda x, a: res(x, a)[0],
                                             blocks=column_blocks(model, free, target))
             return Ahead(jax.jit(jax.jacfwd(batched), **solver_jit_options()))
+        if normal:
+            # the stars of a field: their normal matrix from the Jacobian along its
+            # compressed directions, a few at a time (pixels × directions², not the
+            # dense pixels × parameters matrix and its pixels × parameters² product)
+            structure = BlockColumns.of(column_blocks(model, free, target))
+            seeds = jnp.asarray(direction_seeds(structure))
+
+            def normal_matrix(x, a):
+                (r, m), lin = jax.linearize(lambda x_: res(x_, a), x)
+                jc = jax.lax.map(lambda d: lin(d)[0], seeds, batch_size=JAC_BATCH)
+                return block_normal_equations(jc, r, structure)[0], (r, m)
+
+            return Ahead(jax.jit(normal_matrix, **solver_jit_options()))
         # (residual, model images), one linearisation
         both = with_batched_jacobian(res, blocks=column_blocks(model, free, target,
                                                                outputs=True))
@@ -308,7 +331,7 @@ def _jacobian_program(model: ImageModel, data, values: Mapping[str, float], targ
         return Ahead(jax.jit(jax.jacfwd(with_values, has_aux=True), **solver_jit_options()))
 
     key, keep = trace_key(model, _as_list(data), _as_list(target))
-    jacobian = program(("jacobian", key, tuple(free), residual), make, keep)
+    jacobian = program(("jacobian", key, tuple(free), residual, normal), make, keep)
     x0 = np.asarray([values[k] for k in free], float)
     return jacobian, x0, (base, [t.arrays for t in _as_list(target)])
 
@@ -326,13 +349,32 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
     return np.asarray(jac), np.asarray(r), [np.asarray(mi) for mi in m]
 
 
+def _by_blocks(model: ImageModel, target) -> bool:
+    """Whether the errors' normal matrix comes from the Jacobian's block structure
+    (the stars of a field: :class:`difstar._lm.BlockColumns`)."""
+    return BlockColumns.of(column_blocks(model, model.free, target)) is not None
+
+
+def _normal_matrix(model: ImageModel, data, values: Mapping[str, float], target):
+    """(JᵀJ, residual, model images) at ``values``: for the stars of a field from the
+    Jacobian along its compressed directions (pixels × directions² operations, no
+    dense pixels × parameters matrix), else from :func:`_jacobian`'s."""
+    if not _by_blocks(model, target):
+        jac, r, m = _jacobian(model, data, values, target)
+        return jac.T @ jac, r, m
+    normal, x0, args = _jacobian_program(model, data, values, target, True, normal=True)
+    jtj, (r, m) = normal(x0, args)
+    return np.asarray(jtj), np.asarray(r), [np.asarray(mi) for mi in m]
+
+
 def compile_errors_ahead(model: ImageModel, data, values: Mapping[str, float]) -> None:
     """Compile, on the background thread (:mod:`difstar._ahead`), the Jacobian that
     :func:`_errors` of ``model`` on all pixels of ``data`` will run at values and σ of
     these shapes: a fit's standard errors at its end then wait for no compile (3–4 s on
     the automatic Spitzer fit) where its last stages gave the compile the time."""
     target = [_PixelTarget(d) for d in _as_list(data)]
-    jacobian, x0, args = _jacobian_program(model, data, values, target, True)
+    jacobian, x0, args = _jacobian_program(model, data, values, target, True,
+                                           normal=_by_blocks(model, target))
     jacobian.compile_ahead(x0, args)
 
 def _errors(model: ImageModel, data, values: Mapping[str, float], target=None, *,
@@ -346,16 +388,17 @@ def _errors(model: ImageModel, data, values: Mapping[str, float], target=None, *
     free = model.free
     if linearised is not None:
         (jac, r), m = linearised(), None
+        jtj = jac.T @ jac
     else:
-        jac, r, m = _jacobian(model, data, values, target)
-    if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(r))):
+        jtj, r, m = _normal_matrix(model, data, values, target)
+    if not (np.all(np.isfinite(jtj)) and np.all(np.isfinite(r))):
         raise FitInputError("fit: the model or its derivatives are not finite at the "
                             "answer; check the units (wavelength in metres, pixel_scale "
                             "in arcsec, Zernike in nm) and the bounds.")
     chi2 = float(r @ r)
     dof = sum(t.n for t in _as_list(target)) - len(free)
     kinds = {t.kind for t in _as_list(target)}
-    cov, colnorm = normal_covariance(jac)
+    cov, colnorm = normal_covariance_of(jtj)
     msgs = []
     for k, c in zip(free, colnorm):
         if not c > 1e-12 * max(colnorm.max(), 1e-300):

@@ -370,13 +370,14 @@ _JACOBIAN_FACTOR = 8
 #: every capture's pixels by every free parameter (float64), about this many times at
 #: once, and each capture's own linearisation about ``_PER_CAPTURE_FACTOR`` × its
 #: window's psf_bytes. Measured on the Spitzer star with 16, 40, 80 and 120 copies
-#: (``python benchmarks/joint_stars.py --stars 16,40,80,120``), its steps from the block
-#: normal equations (difstar._lm.NormalDescent): peak RSS 0.80, 1.16, 2.34 and 4.05 GB
-#: for Jacobians of 0.07, 0.36, 1.4 and 3.1 GB, about 0.9 copies and 2.5 × psf_bytes a
-#: star (with optimistix's QR, where a Jacobian has no such structure, about 1.75
-#: copies: 0.89, 1.54, 3.78 and 7.03 GB); rounded down, so that the estimate stays a
-#: lower one (0.61, 0.99, 2.06 and 3.66 GB)
-_DENSE_JACOBIAN_COPIES = 0.8
+#: (``python benchmarks/joint_stars.py --stars 16,120`` and ``--stars 40,80``), the
+#: solver's steps and the standard errors from the block normal equations
+#: (difstar._lm.NormalDescent, _solve._normal_matrix): peak RSS 0.77, 1.15, 2.14 and
+#: 3.56 GB for Jacobians of 0.07, 0.36, 1.4 and 3.1 GB, about 0.64 copies and 2.8 ×
+#: psf_bytes a star above the process's 0.58 GB (with optimistix's QR and the dense
+#: errors, about 1.75 copies: 0.89, 1.54, 3.78 and 7.03 GB); rounded down, so that the
+#: estimate stays a lower one (0.59, 0.88, 1.64 and 2.74 GB)
+_DENSE_JACOBIAN_COPIES = 0.5
 _PER_CAPTURE_FACTOR = 2
 
 
