@@ -1428,6 +1428,18 @@ def test_fit_jacobian_residual_and_images_from_one_program():
                                         base, names, x0)
 
 
+def _three_stars(**kw):
+    """Three stars fitted together: a rotation and jitter shared, a centre, flux and
+    background each."""
+    return ImageModel(obstructed_circle_pupil(), {
+        "pixel_scale": Param(0.6), "x0": Param(0.2, True, (-2.0, 2.0)),
+        "y0": Param(-0.1, True, (-2.0, 2.0)),
+        "rotation": Param(3.0, True, (-30.0, 30.0)), "flux": Param(50.0, True, scale=10.0),
+        "background": Param(0.5, True, scale=1.0), "jitter": Param(0.3, True, (0.0, 2.0))},
+        light=Light.monochromatic(3.6e-6), pad=4, **kw).for_captures(
+            ("x0", "y0", "flux", "background"), 3)
+
+
 def test_joint_fit_of_three_stars_one_psf_moved_and_compressed_jacobian():
     """Three stars fitted together (a rotation and jitter shared; a centre, flux and
     background each). Their model images, one PSF moved to each star by a phase ramp,
@@ -1444,13 +1456,7 @@ def test_joint_fit_of_three_stars_one_psf_moved_and_compressed_jacobian():
     from difstar.fitting._residuals import _PixelTarget, _residual_fn, column_blocks
     from difstar.fitting._solve import _jacobian
 
-    per = ("x0", "y0", "flux", "background")
-    model = ImageModel(obstructed_circle_pupil(), {
-        "pixel_scale": Param(0.6), "x0": Param(0.2, True, (-2.0, 2.0)),
-        "y0": Param(-0.1, True, (-2.0, 2.0)),
-        "rotation": Param(3.0, True, (-30.0, 30.0)), "flux": Param(50.0, True, scale=10.0),
-        "background": Param(0.5, True, scale=1.0), "jitter": Param(0.3, True, (0.0, 2.0))},
-        light=Light.monochromatic(3.6e-6), pad=4, accuracy=1e-5).for_captures(per, 3)
+    model = _three_stars(accuracy=1e-5)
     rng = np.random.default_rng(0)
     datas = [FitData.from_array(rng.random((13, 13)), sigma=0.05) for _ in range(3)]
     targets = [_PixelTarget(d) for d in datas]
@@ -1645,13 +1651,7 @@ def test_the_errors_normal_matrix_of_a_field_from_its_compressed_directions():
     from difstar.fitting._residuals import _PixelTarget
     from difstar.fitting._solve import _by_blocks, _jacobian, _normal_matrix
 
-    per = ("x0", "y0", "flux", "background")
-    model = ImageModel(obstructed_circle_pupil(), {
-        "pixel_scale": Param(0.6), "x0": Param(0.2, True, (-2.0, 2.0)),
-        "y0": Param(-0.1, True, (-2.0, 2.0)),
-        "rotation": Param(3.0, True, (-30.0, 30.0)), "flux": Param(50.0, True, scale=10.0),
-        "background": Param(0.5, True, scale=1.0), "jitter": Param(0.3, True, (0.0, 2.0))},
-        light=Light.monochromatic(3.6e-6), pad=4).for_captures(per, 3)
+    model = _three_stars()
     rng = np.random.default_rng(1)
     datas = [FitData.from_array(rng.random((13, 13)), sigma=0.05) for _ in range(3)]
     targets = [_PixelTarget(d) for d in datas]
