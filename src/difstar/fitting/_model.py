@@ -449,23 +449,19 @@ class ImageModel(ForwardModel):
 
     def image(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None,
               exposure: ScalarLike = 1.0, light: Light | None = None):
-        """The model image (H, W) in data pixels for parameter values ``v`` (a dict of
-        scalars, traceable), for a capture of relative ``exposure`` in ``light`` (default:
-        the model's)."""
+        """The model image (H, W) in data pixels at values ``v`` (scalars, traceable) of
+        a capture of relative ``exposure`` in ``light`` (default: the model's)."""
         img, q = self.window_psf(v, shape, plan, light)
         return image_from_psf(self, img, v, shape, q, exposure)
 
     def window_psf(self, v: Mapping[str, Any], shape: tuple[int, int], plan=None,
                    light: Light | None = None, *, shift: bool = True):
-        """(the PSF, q): :meth:`optics` on the padded window of a capture of ``shape``
-        data pixels, sampled q (:func:`fine_factor`) times a data pixel a side, with the
-        window's plans (``plan``: the whole pupil's, default :meth:`plan`'s). ``shift``:
-        moved to (``x0``, ``y0``); False: at the window's centre, one PSF for several
-        stars, each moved by ``image_from_psf(move=True)``."""
+        """(the PSF, q): :meth:`optics` on a ``shape`` capture's padded window, q samples
+        a data pixel a side, by the window's plans (``plan``: the whole pupil's); ``shift``
+        False: at the window's centre, for ``image_from_psf(move=True)`` to move."""
         light = self.light if light is None else light
-        hp, wp = self.padded_shape(shape)
+        (hp, wp), q = self.padded_shape(shape), fine_factor(self, light)
         plan = self.plan((hp, wp), light) if plan is None else plan
-        q = fine_factor(self, light)
         seg = self.plan((hp, wp), light, segment=True) if self.has_incoherent else None
         return self.optics(v, light, (hp * q, wp * q), q, plans=(plan, seg), shift=shift), q
 

@@ -372,11 +372,11 @@ _JACOBIAN_FACTOR = 8
 #: window's psf_bytes. Measured on the Spitzer star with 16, 40, 80 and 120 copies
 #: (``python benchmarks/joint_stars.py --stars 16,120`` and ``--stars 40,80``), the
 #: solver's steps and the standard errors from the block normal equations
-#: (difstar._lm.NormalDescent, _solve._normal_matrix): peak RSS 0.77, 1.15, 2.14 and
-#: 3.56 GB for Jacobians of 0.07, 0.36, 1.4 and 3.1 GB, about 0.64 copies and 2.8 ×
-#: psf_bytes a star above the process's 0.58 GB (with optimistix's QR and the dense
-#: errors, about 1.75 copies: 0.89, 1.54, 3.78 and 7.03 GB); rounded down, so that the
-#: estimate stays a lower one (0.59, 0.88, 1.64 and 2.74 GB)
+#: (difstar._normal_equations.NormalDescent, _solve._normal_matrix): peak RSS 0.77,
+#: 1.15, 2.14 and 3.56 GB for Jacobians of 0.07, 0.36, 1.4 and 3.1 GB, about 0.64
+#: copies and 2.8 × psf_bytes a star above the process's 0.58 GB (with optimistix's QR
+#: and the dense errors, about 1.75 copies: 0.89, 1.54, 3.78 and 7.03 GB); rounded
+#: down, so that the estimate stays a lower one (0.59, 0.88, 1.64 and 2.74 GB)
 _DENSE_JACOBIAN_COPIES = 0.5
 _PER_CAPTURE_FACTOR = 2
 
