@@ -1452,7 +1452,7 @@ def test_joint_fit_of_three_stars_one_psf_moved_and_compressed_jacobian():
     taken in closed form is shared, the residuals are coupled: no compression."""
     import jax.numpy as jnp
 
-    from difstar._lm import column_colours
+    from difstar._normal_equations import column_colours
     from difstar.fitting._residuals import _PixelTarget, _residual_fn, column_blocks
     from difstar.fitting._solve import _jacobian
 

@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from difstar._lm import MAX_REJECTED, LMStepper, StopRule, normal_covariance
+from difstar._lm import MAX_REJECTED, LMStepper, StopRule, with_batched_jacobian
 
 
 def test_rejections_at_the_start_do_not_stop_a_solve():
@@ -71,28 +71,10 @@ def test_a_rejected_gauss_newton_step_is_shortened_until_one_is_accepted():
     assert abs(res.loss - loss(u)) < 1e-9 * loss(u)
 
 
-def test_normal_covariance_is_the_inverse_normal_matrix():
-    """For a Jacobian of full rank whose columns differ by 10 decades (parameters in
-    metres beside parameters in nanometres), the covariance is (JᵀJ)⁻¹ (NumPy's inverse,
-    in float64); a column of zeros (a parameter nothing depends on) gets a zero row and
-    column and a zero norm, and leaves the others' covariance as without it."""
-    rng = np.random.default_rng(3)
-    j = rng.normal(size=(200, 4)) * np.array([1e-5, 1.0, 3e4, 1e5])
-    cov, norms = normal_covariance(j)
-    np.testing.assert_allclose(cov, np.linalg.inv(j.T @ j), rtol=1e-9)
-    np.testing.assert_allclose(norms, np.linalg.norm(j, axis=0), rtol=1e-12)
-    j0 = np.insert(j, 2, 0.0, axis=1)
-    cov0, norms0 = normal_covariance(j0)
-    assert norms0[2] == 0 and not cov0[2].any() and not cov0[:, 2].any()
-    np.testing.assert_allclose(np.delete(np.delete(cov0, 2, 0), 2, 1), cov, rtol=1e-9)
-
-
 def test_aux_of_the_answer_rides_with_the_batched_jacobian():
     """A solve whose residuals carry an aux (values made on the way, not differentiated):
     the result's aux is the aux at its answer, and the batched Jacobian with the aux is
     jax.jacfwd's of the residuals alone."""
-    from difstar._lm import with_batched_jacobian
-
     t = jnp.linspace(0.0, 1.0, 40)
     data = 3.0 * jnp.exp(-1.7 * t) + 0.5
 
@@ -125,19 +107,10 @@ def _blocks(u, t):
     return jnp.concatenate(rs), firsts
 
 
-def test_column_colours_share_directions_between_blocks_only():
-    from difstar._lm import column_colours
-
-    colour = column_colours([-1, 0, 0, 1, -1, 1, 2, 2])
-    assert colour.tolist() == [0, 2, 3, 2, 1, 3, 2, 3]
-
-
 def test_blocks_of_the_batched_jacobian_equal_the_analytic_jacobian():
     """``blocks``: 2 shared parameters and 2 per block over 3 blocks computed in 4
     compressed directions (not 8); every column is the closed form's, the rows of other
     blocks exactly 0, for a flat residual and for a list of per-block outputs."""
-    from difstar._lm import with_batched_jacobian
-
     t = jnp.linspace(0.0, 1.0, 5)
     owners = [-1, -1, 0, 0, 1, 1, 2, 2]
     rows = (np.repeat(np.arange(3), 5), [np.int32(c) for c in range(3)])
@@ -163,47 +136,18 @@ def test_blocks_of_the_batched_jacobian_equal_the_analytic_jacobian():
     assert not np.allclose(jax.jacfwd(lambda u: bad(u, t))(u0), want)
 
 
-def test_block_normal_equations_equal_the_dense_ones_and_solve_alike():
-    """:func:`normal_equations` with a block structure (the Jacobian applied to its 4
-    compressed directions, JᵀJ read off each block's products) against JᵀJ and Jᵀr of
-    the dense Jacobian, to 1e-12; a Jacobian that breaks the structure gives other ones
-    (the test can fail). A Levenberg–Marquardt solve on those normal equations
-    (:class:`NormalDescent`) reaches the dense QR solve's minimum of a nonlinear
-    three-block problem, in float64."""
-    import types
-
-    import lineax as lx
-
-    from difstar._lm import BlockColumns, normal_equations, with_batched_jacobian
+def test_a_solve_on_block_normal_equations_reaches_the_dense_minimum():
+    """A Levenberg–Marquardt solve on the normal equations of a Jacobian with a block
+    structure (:class:`NormalDescent`) reaches the dense QR solve's minimum of a
+    nonlinear three-block problem, in float64; its last state holds the normal
+    equations of its last accepted point (the stopping rule's Gauss–Newton gain reads
+    them there after a rejected step), equal to the dense JᵀJ and Jᵀr at that point."""
+    from difstar._normal_equations import BlockColumns, normal_equations
 
     owners = [-1, -1, 0, 0, 1, 1, 2, 2]
     rows = np.repeat(np.arange(3), 5)
     structure = BlockColumns.of((owners, rows))
-    assert structure is not None and structure.blocks == 3 and structure.size == 5
-    assert max(structure.colour) + 1 == 4
-    # not a flat vector of equal contiguous blocks: no structure
-    assert BlockColumns.of((owners, np.array([0, 1, 0, 1, 2, 2]))) is None
-    assert BlockColumns.of((owners, (rows, [0, 1, 2]))) is None
     rng = np.random.default_rng(3)
-    jac = np.zeros((15, 8))
-    for c in range(3):
-        jac[5 * c:5 * c + 5, :2] = rng.normal(size=(5, 2))
-        jac[5 * c:5 * c + 5, 2 + 2 * c:4 + 2 * c] = rng.normal(size=(5, 2))
-    r = rng.normal(size=15)
-
-    def info(j):
-        return types.SimpleNamespace(jac=lx.MatrixLinearOperator(jnp.asarray(j)),
-                                     residual=jnp.asarray(r))
-
-    jtj, g = normal_equations(info(jac), structure)
-    np.testing.assert_allclose(jtj, jac.T @ jac, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(g, jac.T @ r, rtol=1e-12, atol=1e-12)
-    dense = normal_equations(info(jac))
-    np.testing.assert_allclose(dense[0], jac.T @ jac, rtol=1e-12, atol=1e-12)
-    bad = jac.copy()
-    bad[:5, 4] = 1.0  # block 1's own column moving block 0
-    assert not np.allclose(normal_equations(info(bad), structure)[0], bad.T @ bad)
-
     t = jnp.linspace(0.0, 1.0, 5)
     truth = np.array([1.3, 0.7, 0.2, -0.4, 0.5, 0.1, -0.3, 0.9])
     data = _blocks(jnp.asarray(truth), t)[0] + 0.01 * jnp.asarray(rng.normal(size=15))
@@ -221,6 +165,13 @@ def test_block_normal_equations_equal_the_dense_ones_and_solve_alike():
     # noise-limited errors here are about 1e-2)
     np.testing.assert_allclose(blocked.u, plain.u, rtol=0, atol=1e-6)
     assert abs(blocked.loss - plain.loss) <= 1e-10 * plain.loss
+    jac = np.asarray(jax.jacfwd(lambda u: residual(u, t))(blocked.u))
+    r = np.asarray(residual(blocked.u, t))
+    jtj, g = blocked.state.descent_state.jtj, blocked.state.descent_state.g
+    np.testing.assert_allclose(jtj, jac.T @ jac, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(g, jac.T @ r, rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(normal_equations(blocked.state.f_info)[0], jtj, rtol=1e-10,
+                               atol=1e-12)
 
 
 def _items(u, args, i):
@@ -234,8 +185,6 @@ def test_items_of_the_batched_jacobian_are_one_map_with_the_analytic_jacobian():
     values and the Jacobian are the closed form's (d/du0 = −(i+1) t u1 e^{−(i+1) u0 t},
     d/du1 = e^{−(i+1) u0 t}), with 5 parameters padded to whole batches of 2, and the
     aux rides along."""
-    from difstar._lm import with_batched_jacobian
-
     t = jnp.linspace(0.0, 1.0, 7)
     data = jnp.stack([jnp.sin(t), jnp.cos(t), t])
     u = jnp.asarray([0.7, 1.3, 0.0, 0.0, 0.0])  # three parameters the items ignore

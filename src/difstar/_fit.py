@@ -57,7 +57,8 @@ from ._fit_params import builder_parameters as builder_parameters
 from ._fit_params import param_shape as param_shape
 from ._fit_params import unit_of as unit_of
 from ._fit_params import zernike_index as zernike_index
-from ._lm import LMStepper, SolveResult, normal_covariance, with_batched_jacobian
+from ._lm import LMStepper, SolveResult, with_batched_jacobian
+from ._normal_equations import normal_covariance
 from ._param import Param as Param
 from ._xla import solver_jit_options
 

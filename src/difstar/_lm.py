@@ -29,14 +29,13 @@ import optimistix as optx
 
 from ._ahead import Ahead
 from ._batch import AXIS, P
-from ._normal_equations import BlockColumns as BlockColumns
-from ._normal_equations import NormalDescent as NormalDescent
-from ._normal_equations import block_normal_equations as block_normal_equations
-from ._normal_equations import column_colours as column_colours
-from ._normal_equations import direction_seeds as direction_seeds
-from ._normal_equations import normal_covariance as normal_covariance
-from ._normal_equations import normal_covariance_of as normal_covariance_of
-from ._normal_equations import normal_equations as normal_equations
+from ._normal_equations import (
+    BlockColumns,
+    NormalDescent,
+    column_colours,
+    column_scale,
+    normal_equations,
+)
 from ._xla import solver_jit_options
 
 #: Consecutive rejected steps after which a solve that has moved counts as converged:
@@ -184,8 +183,7 @@ def gauss_newton_gain(jtj, g):
     Gauss–Newton step δ (least squares of J δ = −r; directions the columns do not
     determine count for nothing). Column-scaled, solved by their eigenvalues (P × P for
     P parameters: cheap beside the Jacobian itself)."""
-    norm = jnp.sqrt(jnp.maximum(jnp.diagonal(jtj), 0.0))
-    scale = jnp.where(norm > 0, 1.0 / jnp.where(norm > 0, norm, 1.0), 0.0)
+    scale = column_scale(jtj, jnp, fill=0.0)
     w, v = jnp.linalg.eigh(jtj * scale[:, None] * scale[None, :])
     keep = w > 1e-12 * jnp.max(w)
     proj = v.T @ (g * scale)
@@ -379,11 +377,17 @@ class LMStepper:
             leaves = jax.tree_util.tree_leaves(state.f_info.residual)
             loss = 0.5 * sum(jnp.sum(r * r) for r in leaves)
             size = getattr(state.search_state, "step_size", jnp.asarray(1.0))
-            # StopRule looks at the gain only after a rejected step: computed only then
+            # StopRule looks at the gain only after a rejected step: computed only then,
+            # from the normal equations NormalDescent made when that point was accepted
+            # (a block structure), or from the point's Jacobian (dense)
+            def normal():
+                if structure is not None:
+                    return state.descent_state.jtj, state.descent_state.g
+                return normal_equations(state.f_info)
+
             gain = jax.lax.cond(
                 state.num_accepted_steps == accepted_before,
-                lambda: gauss_newton_gain(*normal_equations(state.f_info, structure))
-                .astype(loss.dtype),
+                lambda: gauss_newton_gain(*normal()).astype(loss.dtype),
                 lambda: jnp.asarray(jnp.inf, loss.dtype))
             return u, state, done, res == optx.RESULTS.successful, loss, size, \
                 state.num_accepted_steps, gain

@@ -127,6 +127,16 @@ def block_normal_equations(jc, r, structure: BlockColumns):
     return jtj, g
 
 
+def column_scale(jtj, xp, *, fill: float):
+    """1 / each column's norm, read off the normal matrix ``jtj``'s diagonal (``xp``:
+    ``jnp`` inside a program, ``np`` outside); ``fill`` where a column is zero (a
+    parameter the residuals do not depend on): 0 leaves it out of a pseudo-inverse, 1
+    keeps a damped system regular. The one column scaling of the solver's steps, its
+    Gauss–Newton gain and the covariance (parameters of any units compare)."""
+    norm = xp.sqrt(xp.maximum(xp.diagonal(jtj), 0.0))
+    return xp.where(norm > 0, 1.0 / xp.where(norm > 0, norm, 1.0), fill)
+
+
 class _NormalState(eqx.Module):
     jtj: jax.Array
     g: jax.Array
@@ -160,8 +170,7 @@ class NormalDescent(optx.AbstractDescent):
         lam = jnp.where(pred, 1.0 / jnp.where(pred, step_size, 1.0),
                         jnp.finfo(step_size.dtype).max)
         jtj, g = state.jtj, state.g
-        norm = jnp.sqrt(jnp.maximum(jnp.diagonal(jtj), 0.0))
-        scale = jnp.where(norm > 0, 1.0 / jnp.where(norm > 0, norm, 1.0), 1.0)
+        scale = column_scale(jtj, jnp, fill=1.0)
         a = jtj * scale[:, None] * scale[None, :] + jnp.diag(lam * scale * scale)
         z = jnp.linalg.solve(a, -g * scale)
         return z * scale, optx.RESULTS.successful
@@ -182,7 +191,7 @@ def normal_covariance_of(jtj):
     """:func:`normal_covariance` from the normal matrix JᵀJ itself (NumPy, P × P)."""
     jtj = np.asarray(jtj)
     colnorm = np.sqrt(np.maximum(np.diag(jtj), 0.0))
-    dscale = np.where(colnorm > 0, 1.0 / np.where(colnorm > 0, colnorm, 1.0), 0.0)
+    dscale = column_scale(jtj, np, fill=0.0)
     cov = dscale[:, None] * np.linalg.pinv(dscale[:, None] * jtj * dscale[None, :],
                                            rcond=1e-12) * dscale[None, :]
     return cov, colnorm

@@ -15,15 +15,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._ahead import Ahead
-from .._lm import (
-    JAC_BATCH,
+from .._lm import JAC_BATCH, LMStepper, with_batched_jacobian
+from .._normal_equations import (
     BlockColumns,
-    LMStepper,
     block_normal_equations,
     direction_seeds,
     normal_covariance,
     normal_covariance_of,
-    with_batched_jacobian,
 )
 from .._param import bound_map_slope, step_map
 from .._progress import moved_most, step_bar
@@ -351,7 +349,7 @@ def _jacobian(model: ImageModel, data, values: Mapping[str, float], target, *,
 
 def _by_blocks(model: ImageModel, target) -> bool:
     """Whether the errors' normal matrix comes from the Jacobian's block structure
-    (the stars of a field: :class:`difstar._lm.BlockColumns`)."""
+    (the stars of a field: :class:`difstar._normal_equations.BlockColumns`)."""
     return BlockColumns.of(column_blocks(model, model.free, target)) is not None
 
 
