@@ -641,12 +641,14 @@ def test_a_model_not_finite_at_the_start_is_named(monkeypatch):
 
 
 def test_joint_fit_too_large_for_memory_is_refused_saying_how_many_fit(monkeypatch):
-    """Captures fitted together (the stars of a field): the solver holds every pixel by
-    every free parameter, which grows as the square of the captures, and nothing bounded
-    it (a joint fit's check counted one window). Against DIFSTAR_MEMORY_LIMIT between
-    the estimates for 8 and 9 captures, 40 captures are refused before any compile,
-    naming the captures, the fix (per_capture, roi) and how many fit together; 8 pass
-    the check."""
+    """Captures fitted together (the stars of a field): the solver holds each capture's
+    linearisation and every pixel by the Jacobian's columns, and nothing bounded it (a
+    joint fit's check counted one window). With equal windows (the block structure: the
+    compressed directions only) each further capture costs the same; with unequal ones
+    (every free parameter a column) the cost grows faster than their number. Against
+    DIFSTAR_MEMORY_LIMIT between the estimates for 8 and 9 captures, 40 captures are
+    refused before any compile, naming the captures, the fix (per_capture, roi) and how
+    many fit together; 8 pass the check."""
     from difstar.fitting import FitData, ImageModel, Light, Param, fit, obstructed_circle_pupil
     from difstar.fitting._stages import fit_memory
 
@@ -658,11 +660,19 @@ def test_joint_fit_too_large_for_memory_is_refused_saying_how_many_fit(monkeypat
         light=Light.monochromatic(3.6e-6), pad=4)
     rng = np.random.default_rng(0)
     datas = [FitData.from_array(rng.random((41, 41)), sigma=0.05) for _ in range(40)]
-    need = [fit_memory(model.for_captures(per, n), datas[:n]) for n in (1, 8, 9, 20, 40)]
-    # a lower estimate that grows with the captures, faster than their number (20 more
-    # captures after 20 cost more than 20/19 of the 19 more after 1)
+    counts = (1, 8, 9, 20, 40)
+    need = [fit_memory(model.for_captures(per, n), datas[:n]) for n in counts]
     assert need[0] > 0 and need[1] < need[2] < need[3] < need[4]
-    assert need[4] - need[3] > 1.1 * 20 / 19 * (need[3] - need[0])
+    # equal windows: each further capture costs the same (20 more after 20 cost 20 times
+    # the one after 8)
+    assert need[4] - need[3] == pytest.approx(20 * (need[2] - need[1]), rel=1e-9)
+    # unequal windows: faster than their number (20 more captures after 20 cost more
+    # than 20/19 of the 19 more after 1)
+    uneven = [FitData.from_array(rng.random((41, 41) if i % 2 else (41, 40)), sigma=0.05)
+              for i in range(40)]
+    dense = [fit_memory(model.for_captures(per, n), uneven[:n]) for n in counts]
+    assert dense[4] - dense[3] > 1.1 * 20 / 19 * (dense[3] - dense[0])
+    assert all(d > b for d, b in zip(dense[1:], need[1:]))
     monkeypatch.setenv("DIFSTAR_MEMORY_LIMIT", str(int((need[1] + need[2]) / 2)))
     with pytest.raises(FitInputError) as e:
         fit(model, datas)

@@ -136,6 +136,39 @@ def test_blocks_of_the_batched_jacobian_equal_the_analytic_jacobian():
     assert not np.allclose(jax.jacfwd(lambda u: bad(u, t))(u0), want)
 
 
+def test_compressed_jacobian_under_jit_and_vmap_equals_the_matrix():
+    """A linear residual A u whose matrix has a block structure (two blocks of 6561
+    rows, 12 shared columns and 2 per block: 14 compressed directions), its rows in
+    blocks one after the other and, again, interleaved: the linearisation that
+    :func:`with_batched_jacobian` keeps (the directions' derivatives, weighted by the
+    tangent on each block's rows) applied to 5 directions at once under ``jit`` and
+    ``vmap``, and its transpose, against A itself (NumPy's products in float64), to
+    float32's rounding: in float32, at these sizes, jaxlib 0.10.2's CPU compiler
+    computed a product summed over the directions wrongly (and slowly) under ``vmap``
+    (its YNNPACK fusion); the rule contracts over them instead."""
+    rng = np.random.default_rng(5)
+    owners = np.array([0, 1, 0, 1] + [-1] * 12)
+    for rows in (np.repeat(np.arange(2), 6561), np.tile(np.arange(2), 6561)):
+        a = rng.normal(size=(rows.size, owners.size))
+        own = owners >= 0
+        a[:, own] *= rows[:, None] == owners[own][None, :]  # a star's columns on its rows
+        mat = jnp.asarray(a, jnp.float32)
+        fn = with_batched_jacobian(lambda u, _: mat @ u, blocks=(owners, rows))
+        u0 = jnp.asarray(rng.normal(size=owners.size), jnp.float32)
+        seeds = rng.normal(size=(5, owners.size)).astype(np.float32)
+        r = rng.normal(size=rows.size).astype(np.float32)
+
+        @jax.jit
+        def both(u, seeds, r):
+            lin = jax.linearize(lambda v: fn(v, None), u)[1]
+            return jax.vmap(lin)(seeds), jax.linear_transpose(lin, u)(r)[0]
+
+        jv, jtr = both(u0, jnp.asarray(seeds), jnp.asarray(r))
+        a32 = a.astype(np.float32).astype(float)
+        np.testing.assert_allclose(jv, seeds.astype(float) @ a32.T, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(jtr, a32.T @ r.astype(float), rtol=0, atol=1e-3)
+
+
 def test_a_solve_on_block_normal_equations_reaches_the_dense_minimum():
     """A Levenberg–Marquardt solve on the normal equations of a Jacobian with a block
     structure (:class:`NormalDescent`) reaches the dense QR solve's minimum of a

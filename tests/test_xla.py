@@ -22,6 +22,7 @@ def fresh_options():
 
 
 def test_on_a_cpu_the_solver_programs_use_the_older_fusion_code_generator(fresh_options):
+    """... and no YNNPACK fusions."""
     if jax.default_backend() != "cpu":
         assert _xla.solver_jit_options() == {}
         return
@@ -32,6 +33,28 @@ def test_an_option_this_jaxlib_does_not_know_falls_back_to_plain_compiles(
         fresh_options, monkeypatch):
     monkeypatch.setattr(_xla, "SOLVER_CPU_OPTIONS", {"xla_no_such_option_here": True})
     assert _xla.solver_jit_options() == {}
+
+
+def test_an_unknown_option_is_left_out_and_the_known_ones_kept(fresh_options, monkeypatch):
+    monkeypatch.setattr(_xla, "SOLVER_CPU_OPTIONS", {"xla_no_such_option_here": True,
+                                                     "xla_cpu_use_fusion_emitters": False})
+    if jax.default_backend() == "cpu":
+        assert _xla.solver_jit_options() == {
+            "compiler_options": {"xla_cpu_use_fusion_emitters": False}}
+
+
+def test_with_the_options_a_product_summed_under_vmap_is_computed_right(fresh_options):
+    """A product of a (14, 13122) array with a batch of 5 such, summed over its 14
+    rows, under jit and vmap, in float32, against NumPy: jaxlib 0.10.2's YNNPACK fusion
+    got this wrong (by about the values themselves; jax#39103), which the options turn
+    off."""
+    rng = np.random.default_rng(0)
+    v = rng.random((5, 14, 13122)).astype(np.float32)
+    c = rng.random((14, 13122)).astype(np.float32)
+    f = jax.jit(jax.vmap(lambda v, c: jnp.sum(c * v, axis=0), in_axes=(0, None)),
+                **_xla.solver_jit_options())
+    want = np.einsum("bgn,gn->bn", v.astype(float), c.astype(float))
+    np.testing.assert_allclose(f(v, c), want, rtol=1e-5)
 
 
 def test_a_jax_whose_jit_takes_no_compiler_options_falls_back_too(fresh_options,

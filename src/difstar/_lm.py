@@ -154,12 +154,12 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
                                     out_specs=(P(), P(), P(AXIS)), check_vma=False)
         y, aux, cols = columns(eye, u, args)
         if colour is None:
-            cols = jax.tree_util.tree_map(lambda c: c[:n], cols)
-        else:  # column j: its direction's derivative on its own block's rows
-            cols = jax.tree_util.tree_map(
-                lambda c, r: _decompressed(c, r, colour, owners), cols,
-                jax.tree_util.tree_map(np.asarray, blocks[1]))
-        dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c, axes=1), cols)
+            dy = jax.tree_util.tree_map(lambda c: jnp.tensordot(du, c[:n], axes=1), cols)
+        else:  # the G directions' derivatives kept as they are, not the P columns
+            rows = jax.tree_util.tree_map(np.asarray, blocks[1])
+            weights = _direction_weights(du, colour, owners, rows)
+            dy = jax.tree_util.tree_map(lambda c, r: _compressed_tangent(c[:g], weights, r),
+                                        cols, rows)
         if not has_aux:
             return y, dy
         return (y, aux), (dy, jax.tree_util.tree_map(jnp.zeros_like, aux))
@@ -167,14 +167,47 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
     return fn
 
 
-def _decompressed(c, rows, colour, owners):
-    """The P columns (P, …) from the compressed directions' derivatives ``c`` (G, …):
-    column j is its direction's (``colour[j]``) where the residual's block (``rows``,
-    broadcastable to one) is the parameter's (``owners[j]``; −1: every block), else 0."""
-    rows = jnp.asarray(np.asarray(rows, np.int32))  # (…) or its broadcastable shape
-    own = jnp.asarray(owners.astype(np.int32)).reshape((-1,) + (1,) * (c.ndim - 1))
-    keep = (own < 0) | (rows[None] == own)  # computed in the program, not a constant
-    return jnp.where(keep, c[jnp.asarray(colour)], 0)
+def _direction_weights(du, colour, owners, rows):
+    """The tangent ``du`` (P,) as weights of the compressed directions on each block's
+    rows, (G, B + 1): entry (g, c) is the tangent of the column of direction g that
+    moves block c (the direction's shared column, or block c's own column of that
+    direction; 0 where there is none), and the last, for rows in no block (``rows`` −1),
+    only a shared column's. Linear in ``du``: a gather."""
+    n_blocks = 1 + max([int(np.max(owners, initial=-1))]
+                       + [int(np.max(r, initial=-1)) for r in jax.tree_util.tree_leaves(rows)])
+    pick = np.full((int(colour.max()) + 1, n_blocks + 1), -1)
+    for j, (g, o) in enumerate(zip(colour, owners)):
+        if o < 0:
+            pick[g, :] = j
+        else:
+            pick[g, o] = j
+    return jnp.where(jnp.asarray(pick >= 0), du[np.maximum(pick, 0)], 0)
+
+
+def _compressed_tangent(c, weights, rows):
+    """J du on one output from its compressed directions' derivatives ``c`` (G, …) and
+    :func:`_direction_weights` (G, B + 1): each residual's sum over the directions of
+    the derivative times the weight for its block (``rows``, broadcastable to one
+    output; −1: no block). G × residuals operations, and the linearisation keeps the G
+    directions' derivatives, not the P columns (for a field of 120 stars, 17 against
+    493). Contractions over the directions (``dot_general``), not a product summed
+    over an axis: jaxlib 0.10.2's CPU compiler computes that sum wrongly under ``vmap``
+    at these sizes, and takes seconds for it (its YNNPACK fusion; jax#39103)."""
+    rows = np.asarray(rows)
+    rows = np.where(rows < 0, weights.shape[1] - 1, rows)
+    if rows.ndim == 0:  # the whole output one block's
+        return jnp.tensordot(weights[:, int(rows)], c, axes=1)
+    if rows.ndim == c.ndim - 1 == 1:
+        starts = np.flatnonzero(np.diff(rows, prepend=-1))
+        n = rows.size // starts.size
+        if rows.size % starts.size == 0 and np.array_equal(starts, np.arange(starts.size) * n):
+            # equal contiguous blocks (the stars of a field): one contraction per block
+            w = weights[:, rows[starts]]  # (G, blocks)
+            return jnp.einsum("gkn,gk->kn", c.reshape(c.shape[0], starts.size, n),
+                              w).reshape(rows.shape)
+    w = weights[:, rows]  # (G,) + rows' shape
+    w = w.reshape((w.shape[0],) + (1,) * (c.ndim - 1 - rows.ndim) + rows.shape)
+    return jnp.einsum("g...,g...->...", c, jnp.broadcast_to(w, c.shape))
 
 
 def gauss_newton_gain(jtj, g):

@@ -29,7 +29,14 @@ import jax.numpy as jnp
 #: (24.9 and 28.3 s against 26.8 and 28.1 s). Not for the PSF and image programs: those
 #: run hundreds of times (a rotation scan) or are timed by users (a plain ``psf`` call),
 #: and there the newer code generator's programs run up to 1.3× faster.
-SOLVER_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+SOLVER_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False,
+                      # no YNNPACK fusions (empty: none of their kinds). jaxlib 0.10.2
+                      # turned them on, and they compute a product summed over an axis
+                      # wrongly under vmap at a solver's sizes (jax#39103; found here
+                      # in a field's compressed Jacobian, tests/test_lm.py), and took
+                      # seconds for it; the fits' answers and times are the same without
+                      # them (BENCHMARKS.md)
+                      "xla_cpu_experimental_ynn_fusion_type": ""}
 
 
 def stored(fn, operands, key):
@@ -58,17 +65,19 @@ def stored(fn, operands, key):
 @functools.cache
 def solver_jit_options() -> dict:
     """Keyword arguments for ``jax.jit`` / ``eqx.filter_jit`` of a solver's programs:
-    :data:`SOLVER_CPU_OPTIONS` where the default backend is a CPU and this jaxlib knows
-    them (a tiny program is compiled with them once per process to find out); nothing
-    elsewhere (GPUs compile otherwise), where the options are unknown or where
-    ``jax.jit`` takes none (an older jax)."""
+    those of :data:`SOLVER_CPU_OPTIONS` this jaxlib knows, where the default backend is
+    a CPU (a tiny program is compiled with each once per process to find out); nothing
+    elsewhere (GPUs compile otherwise) or where ``jax.jit`` takes none (an older jax)."""
     if jax.default_backend() != "cpu":
         return {}
-    try:
-        jax.jit(lambda x: x + 1, compiler_options=SOLVER_CPU_OPTIONS).lower(
-            jnp.zeros(())).compile()
-    except (jax.errors.JaxRuntimeError, TypeError):
-        # "No such compile option", or a jax whose jit takes no compiler options: compile
-        # as usual
-        return {}
-    return {"compiler_options": dict(SOLVER_CPU_OPTIONS)}
+    known = {}
+    for name, value in SOLVER_CPU_OPTIONS.items():
+        try:
+            jax.jit(lambda x: x + 1, compiler_options={name: value}).lower(
+                jnp.zeros(())).compile()
+        except (jax.errors.JaxRuntimeError, TypeError):
+            # "No such compile option" (a jaxlib without it), or a jax whose jit takes
+            # no compiler options: compiled without it
+            continue
+        known[name] = value
+    return {"compiler_options": known} if known else {}

@@ -17,6 +17,7 @@ from ._data import FitData, noise_from_residuals, reject_outliers
 from ._detector import SourceImage
 from ._model import ImageModel
 from ._params import _PITCH, FitInputError, _finite, _whole
+from ._solve import LINEAR
 
 
 def _keyword_names(fn, leave_out=()) -> frozenset:
@@ -366,28 +367,32 @@ def _check_fit_inputs(model: ImageModel, datas: Sequence[FitData], stages: Seque
 #: on the Spitzer campaign (fit/spitzer-irac: 81² pixels, 17 free, measured peak 9.4 GB
 #: against psf_bytes × 19 = 0.47 GB), rounded down so that the estimate stays a lower one
 _JACOBIAN_FACTOR = 8
-#: captures fitted together (the stars of a field): the solver holds the Jacobian whole,
-#: every capture's pixels by every free parameter (float64), about this many times at
+#: captures fitted together (the stars of a field): the solver holds the Jacobian,
+#: every capture's pixels by each of its columns (float64), about this many times at
 #: once, and each capture's own linearisation about ``_PER_CAPTURE_FACTOR`` × its
-#: window's psf_bytes. Measured on the Spitzer star with 16, 40, 80 and 120 copies
-#: (``python benchmarks/joint_stars.py --stars 16,120`` and ``--stars 40,80``), the
-#: solver's steps and the standard errors from the block normal equations
-#: (difstar._normal_equations.NormalDescent, _solve._normal_matrix): peak RSS 0.77,
-#: 1.15, 2.14 and 3.56 GB for Jacobians of 0.07, 0.36, 1.4 and 3.1 GB, about 0.64
-#: copies and 2.8 × psf_bytes a star above the process's 0.58 GB (with optimistix's QR
-#: and the dense errors, about 1.75 copies: 0.89, 1.54, 3.78 and 7.03 GB); rounded
-#: down, so that the estimate stays a lower one (0.59, 0.88, 1.64 and 2.74 GB)
-_DENSE_JACOBIAN_COPIES = 0.5
+#: window's psf_bytes. The columns: every free parameter where the stars' windows
+#: differ or a closed-form flux is shared (optimistix's QR on the dense Jacobian); only
+#: the compressed directions (shared + one star's own) where the Jacobian has its block
+#: structure (difstar._lm.with_batched_jacobian keeps them as they are). Measured on
+#: the Spitzer star with 4, 40, 80 and 120 copies (``python benchmarks/joint_stars.py
+#: --stars 4,40`` and ``--stars 80,120``): peak RSS 0.63, 0.87, 1.17 and 1.38 GB, about
+#: 6.4 MB a star (psf_bytes 3.0 MB, 17 directions of 6561 pixels 0.9 MB) above the
+#: process's 0.6 GB; the estimate 0.50, 0.72, 0.98 and 1.23 GB. Before the compressed
+#: directions were kept (the P columns held, 3befa96): 0.77, 1.15, 2.14 and 3.56 GB
+#: for 16, 40, 80 and 120 copies, about 0.64 copies of those Jacobians; rounded down,
+#: so that the estimate stays a lower one
+_JACOBIAN_COPIES = 0.5
 _PER_CAPTURE_FACTOR = 2
 
 
 def fit_memory(model: ImageModel, datas: Sequence[FitData]) -> float:
     """A lower estimate of a fit's peak memory (bytes) from its shapes alone: the
     Jacobian's columns through the chain on the largest capture's padded window and,
-    for captures fitted together, each capture's linearisation and the whole Jacobian
-    (every capture's pixels by every free parameter, which grows as the square of the
-    captures). 0 where the window cannot be planned (the fit's first step reports
-    that, named)."""
+    for captures fitted together, each capture's linearisation and the Jacobian the
+    solver holds (every capture's pixels by its compressed directions where the stars'
+    Jacobian has its block structure, else by every free parameter, which grows as the
+    square of the captures). 0 where the window cannot be planned (the fit's first
+    step reports that, named)."""
     return _memory_of_first(model, datas)(len(datas))
 
 
@@ -408,13 +413,20 @@ def _memory_of_first(model: ImageModel, datas: Sequence[FitData]):
     own = sum(q.endswith("@0") for q in free)
     pixels = np.cumsum([int(d.image.size) for d in datas])
     window = one * (2 if model.has_incoherent else 1)
+    # the block structure (each star's columns zero on the other stars' pixels, the
+    # solver then holding the compressed directions only): equal windows, and no shared
+    # flux or background taken in closed form (it would couple the stars' residuals)
+    coupled = not model.response and any(
+        "@" not in q and q in LINEAR and model.params[q].bounds is None for q in free)
+    blocked = bool(own) and not coupled and len({d.image.shape for d in datas}) == 1
 
     def need(m: int) -> float:
         params = shared + own * m if model.per_capture else len(free)
         out = _JACOBIAN_FACTOR * ((params if m == 1 else shared + own) + 2) * window
         if m > 1:
+            columns = shared + own if blocked else params
             out += (_PER_CAPTURE_FACTOR * one * m
-                    + _DENSE_JACOBIAN_COPIES * 8 * int(pixels[m - 1]) * params)
+                    + _JACOBIAN_COPIES * 8 * int(pixels[m - 1]) * columns)
         return float(out)
 
     return need
@@ -439,9 +451,11 @@ def _check_fit_memory(model: ImageModel, datas: Sequence[FitData]) -> None:
             ("data",), f"fitting {n} captures together ({k} free parameters, "
             f"{sum(int(d.image.size) for d in datas)} pixels) needs at least "
             f"{fmt_bytes(need)} of memory, more than the {fmt_bytes(budget)} available "
-            "(DIFSTAR_MEMORY_LIMIT overrides): the solver holds every pixel by every "
-            f"parameter, which grows as the square of the captures; fit {fix}smaller "
-            "windows (roi), or fewer parameters per capture (per_capture).",
+            "(DIFSTAR_MEMORY_LIMIT overrides): the solver holds each capture's "
+            "linearisation and every pixel by the Jacobian's columns (by every free "
+            "parameter where the windows differ in size, which grows as the square of "
+            f"the captures); fit {fix}smaller windows (roi), or fewer parameters per "
+            "capture (per_capture).",
             f"fit: {n} captures together need at least {fmt_bytes(need)} of memory, more "
             f"than the {fmt_bytes(budget)} available (DIFSTAR_MEMORY_LIMIT overrides); fit "
             f"{fix}smaller windows (roi) or fewer per_capture parameters.")
