@@ -95,3 +95,68 @@ def test_a_solve_compiled_with_the_options_ends_where_one_without_them_ends(monk
     # the independent truth: the parameters the samples were made with
     np.testing.assert_allclose(with_options, [2.0, 1.3, 0.25], rtol=1e-9)
     np.testing.assert_allclose(with_options, without, rtol=1e-12, atol=1e-14)
+
+
+_CHILD = """
+import os, sys
+import numpy as np
+import difstar
+import jax, jax.numpy as jnp
+v = np.random.default_rng(0).random((5, 14, 13122)).astype(np.float32)
+c = np.random.default_rng(1).random((14, 13122)).astype(np.float32)
+f = jax.jit(jax.vmap(lambda v, c: jnp.sum(c * v, axis=0), in_axes=(0, None)))
+err = np.abs(np.asarray(f(v, c)) - np.einsum("bgn,gn->bn", v.astype(float), c.astype(float)))
+print(repr(os.environ.get("XLA_FLAGS", "")), float(err.max() / 14))
+"""
+
+
+def _child(**env):
+    import os
+    import subprocess
+    import sys
+
+    run = dict(os.environ, **env)
+    for k in ("XLA_FLAGS", _xla.KEEP_FLAGS_ENV):
+        if k not in env:
+            run.pop(k, None)
+    out = subprocess.run([sys.executable, "-c", _CHILD], env=run, capture_output=True,
+                         text=True, check=True, timeout=300).stdout.split()
+    return out[0], float(out[1])
+
+
+def _in_range():
+    import jaxlib
+
+    lo, hi = _xla.YNN_JAXLIBS
+    return lo <= tuple(int(p) for p in jaxlib.__version__.split(".")[:3]) < hi
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA's CPU fusions")
+def test_import_difstar_turns_off_the_ynn_fusions_so_a_users_jit_is_right_too():
+    """``import difstar`` (before any JAX computation) adds the flag to XLA_FLAGS where
+    jaxlib is one that fuses with YNNPACK by default; a plain ``jax.jit`` of the
+    product that jaxlib 0.10.2 got wrong then agrees with NumPy (float32's rounding of
+    a sum of 14 products). DIFSTAR_KEEP_XLA_FLAGS leaves XLA_FLAGS alone, and a flag
+    the user set is kept as it is."""
+    flags, err = _child()
+    if _in_range():
+        assert _xla.YNN_OFF_FLAG in flags
+    assert err < 1e-5
+    flags, _ = _child(**{_xla.KEEP_FLAGS_ENV: "1"})
+    assert _xla.YNN_OFF_FLAG not in flags
+    flags, _ = _child(XLA_FLAGS="--xla_cpu_experimental_ynn_fusion_type=reduce")
+    assert flags.count("ynn_fusion_type") == 1 and "=reduce" in flags
+
+
+def test_the_flag_is_added_once_and_only_before_jax_starts(monkeypatch):
+    from jax._src import xla_bridge
+
+    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: False)
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert _xla.turn_off_ynn_fusions(env) == _in_range()
+    if _in_range():
+        assert env["XLA_FLAGS"] == ("--xla_force_host_platform_device_count=2 "
+                                    + _xla.YNN_OFF_FLAG)
+    assert not _xla.turn_off_ynn_fusions(env)  # already there
+    monkeypatch.setattr(xla_bridge, "backends_are_initialized", lambda: True)
+    assert not _xla.turn_off_ynn_fusions({})  # too late: XLA read its flags

@@ -5,6 +5,7 @@ demosaic → colour, composed by :func:`simulate`. Fitting and design call ``sim
 The command line and file I/O live in ``difstar.io`` and ``difstar.cli``.
 """
 
+from . import _xla
 from ._atf import atf as atf
 from ._cfa import bayer_masks as bayer_masks
 from ._batch import device_mesh as device_mesh
@@ -235,3 +236,6 @@ from ._zernike import (
 from ._zernike import zernike_noll as zernike_noll
 
 __version__ = "0.1.0"
+
+# XLA reads XLA_FLAGS as JAX's backends start: before any computation (difstar._xla)
+_xla.turn_off_ynn_fusions()

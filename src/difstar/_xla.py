@@ -18,6 +18,7 @@ an image fit's about 35 % faster (the RAW fit's step no faster), and they run as
 from __future__ import annotations
 
 import functools
+import os
 
 import jax
 import jax.numpy as jnp
@@ -37,6 +38,47 @@ SOLVER_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False,
                       # seconds for it; the fits' answers and times are the same without
                       # them (BENCHMARKS.md)
                       "xla_cpu_experimental_ynn_fusion_type": ""}
+
+
+#: XLA's flag that turns off its YNNPACK fusions on a CPU (an empty list of their kinds)
+YNN_OFF_FLAG = "--xla_cpu_experimental_ynn_fusion_type="
+#: the jaxlib versions that fuse with YNNPACK by default and know the flag: 0.10.2
+#: turned the fusions on; later versions are left as they are (the flag may go)
+YNN_JAXLIBS = ((0, 10, 2), (0, 12, 0))
+#: set (to anything) to leave ``XLA_FLAGS`` as it is
+KEEP_FLAGS_ENV = "DIFSTAR_KEEP_XLA_FLAGS"
+
+
+def turn_off_ynn_fusions(environ=os.environ) -> bool:
+    """Turn off XLA's YNNPACK fusions on the CPU for this process, by adding
+    :data:`YNN_OFF_FLAG` to ``XLA_FLAGS``, where jaxlib is one of :data:`YNN_JAXLIBS`,
+    ``XLA_FLAGS`` does not name the flag already, :data:`KEEP_FLAGS_ENV` is unset and
+    JAX's backends have not started (XLA reads ``XLA_FLAGS`` once, as they start:
+    ``import difstar`` before any JAX computation). Returns whether it did.
+
+    jaxlib 0.10.2's fusions compute a product summed over an axis wrongly under vmap at
+    sizes a fit reaches (jax#39103; tests/test_xla.py has one such product), with no
+    error. The solvers' programs are compiled without them in any case
+    (:data:`SOLVER_CPU_OPTIONS`); this covers the forward model's programs and the
+    user's own jits of difstar's functions. Measured on difstar's benchmarks, the plain
+    PSF calls and the fits take the same time without them (BENCHMARKS.md)."""
+    flags = environ.get("XLA_FLAGS", "")
+    if environ.get(KEEP_FLAGS_ENV) or "xla_cpu_experimental_ynn_fusion_type" in flags:
+        return False
+    try:
+        import jaxlib
+
+        version = tuple(int(p) for p in jaxlib.__version__.split(".")[:3])
+        from jax._src import xla_bridge
+
+        started = xla_bridge.backends_are_initialized()
+    except (ImportError, AttributeError, ValueError):
+        return False  # a jaxlib or jax this does not know: left as it is
+    lo, hi = YNN_JAXLIBS
+    if started or not lo <= version < hi:
+        return False
+    environ["XLA_FLAGS"] = f"{flags} {YNN_OFF_FLAG}".strip()
+    return True
 
 
 def stored(fn, operands, key):
