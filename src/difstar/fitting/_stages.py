@@ -374,13 +374,12 @@ _JACOBIAN_FACTOR = 8
 #: differ or a closed-form flux is shared (optimistix's QR on the dense Jacobian); only
 #: the compressed directions (shared + one star's own) where the Jacobian has its block
 #: structure (difstar._lm.with_batched_jacobian keeps them as they are). Measured on
-#: the Spitzer star with 4, 40, 80 and 120 copies (``python benchmarks/joint_stars.py
-#: --stars 4,40`` and ``--stars 80,120``): peak RSS 0.63, 0.87, 1.17 and 1.38 GB, about
-#: 6.4 MB a star (psf_bytes 3.0 MB, 17 directions of 6561 pixels 0.9 MB) above the
-#: process's 0.6 GB; the estimate 0.50, 0.72, 0.98 and 1.23 GB. Before the compressed
-#: directions were kept (the P columns held, 3befa96): 0.77, 1.15, 2.14 and 3.56 GB
-#: for 16, 40, 80 and 120 copies, about 0.64 copies of those Jacobians; rounded down,
-#: so that the estimate stays a lower one
+#: the Spitzer star with 16, 40, 80 and 120 copies (``python benchmarks/joint_stars.py
+#: --stars 16,40,80,120``): peak RSS 0.72, 0.86, 1.17 and 1.48 GB, about 6–8 MB a star
+#: (psf_bytes 3.0 MB, 17 directions of 6561 pixels 0.9 MB) above the process's 0.6 GB;
+#: the estimate 0.56, 0.71, 0.97 and 1.23 GB. Before the compressed directions were
+#: kept (the P columns held, 3befa96): 0.77, 1.15, 2.14 and 3.56 GB, about 0.64 copies
+#: of those Jacobians; rounded down, so that the estimate stays a lower one
 _JACOBIAN_COPIES = 0.5
 _PER_CAPTURE_FACTOR = 2
 
