@@ -1,5 +1,6 @@
-"""XLA's CPU compiler, in one place: working around its fusion heuristics, and the
-options the solvers' programs are compiled with.
+"""XLA's CPU compiler, in one place: working around its fusion heuristics, the options
+the solvers' programs are compiled with, and its YNNPACK fusions turned off where they
+compute wrongly.
 
 XLA fuses a cheap producer into every consumer that reads it. When a value feeds
 several consumers (several reductions, a slice beside an FFT, an output beside the next
@@ -13,6 +14,11 @@ covariance's Jacobian) are large and run a few to a few dozen times each, so on 
 their compile is most of a first fit's time. XLA's older fusion code generator compiles
 an image fit's about 35 % faster (the RAW fit's step no faster), and they run as fast
 (:func:`solver_jit_options`).
+
+jaxlib 0.10.2 turned on XLA's YNNPACK fusions on the CPU, and they compute a product
+summed over an axis wrongly under ``vmap`` (jax#39103). ``import difstar`` turns them
+off for the process where it can (:func:`turn_off_ynn_fusions`), and the solvers'
+programs are compiled without them (:data:`SOLVER_CPU_OPTIONS`).
 """
 
 from __future__ import annotations
