@@ -34,6 +34,7 @@ from ._normal_equations import (
     NormalDescent,
     column_colours,
     column_scale,
+    equal_blocks,
     normal_equations,
 )
 from ._xla import solver_jit_options
@@ -197,14 +198,11 @@ def _compressed_tangent(c, weights, rows):
     rows = np.where(rows < 0, weights.shape[1] - 1, rows)
     if rows.ndim == 0:  # the whole output one block's
         return jnp.tensordot(weights[:, int(rows)], c, axes=1)
-    if rows.ndim == c.ndim - 1 == 1:
-        starts = np.flatnonzero(np.diff(rows, prepend=-1))
-        n = rows.size // starts.size
-        if rows.size % starts.size == 0 and np.array_equal(starts, np.arange(starts.size) * n):
-            # equal contiguous blocks (the stars of a field): one contraction per block
-            w = weights[:, rows[starts]]  # (G, blocks)
-            return jnp.einsum("gkn,gk->kn", c.reshape(c.shape[0], starts.size, n),
-                              w).reshape(rows.shape)
+    found = equal_blocks(rows) if rows.shape == c.shape[1:] else None
+    if found is not None:  # equal contiguous blocks (the stars of a field)
+        n_blocks, size = found
+        return jnp.einsum("gkn,gk->kn", c.reshape(c.shape[0], n_blocks, size),
+                          weights[:, :n_blocks]).reshape(rows.shape)
     w = weights[:, rows]  # (G,) + rows' shape
     w = w.reshape((w.shape[0],) + (1,) * (c.ndim - 1 - rows.ndim) + rows.shape)
     return jnp.einsum("g...,g...->...", c, jnp.broadcast_to(w, c.shape))

@@ -62,18 +62,28 @@ class BlockColumns:
         owners, rows = blocks
         if isinstance(rows, (list, tuple)):  # a row array per output: not one vector
             return None
-        rows = np.asarray(rows)
-        if rows.ndim != 1 or rows.size == 0:
+        found = equal_blocks(rows)
+        if found is None:
             return None
-        n_blocks = int(rows.max()) + 1
-        if rows.size % n_blocks or not np.array_equal(
-                rows, np.repeat(np.arange(n_blocks), rows.size // n_blocks)):
-            return None
+        n_blocks, size = found
         owners = np.asarray(owners, int)
         if np.any(owners >= n_blocks):
             return None
         return cls(tuple(int(c) for c in column_colours(owners)),
-                   tuple(int(o) for o in owners), n_blocks, rows.size // n_blocks)
+                   tuple(int(o) for o in owners), n_blocks, size)
+
+
+def equal_blocks(rows) -> tuple[int, int] | None:
+    """(blocks, size) where ``rows`` (each residual's block) is one flat vector of equal
+    contiguous blocks 0, 1, …, in order; else None."""
+    rows = np.asarray(rows)
+    if rows.ndim != 1 or rows.size == 0:
+        return None
+    n_blocks = int(rows.max()) + 1
+    if rows.size % n_blocks or not np.array_equal(
+            rows, np.repeat(np.arange(n_blocks), rows.size // n_blocks)):
+        return None
+    return n_blocks, rows.size // n_blocks
 
 
 def normal_equations(info, structure: BlockColumns | None = None):

@@ -154,14 +154,20 @@ def _one_fit(model: ImageModel, data, target, *, max_steps: int, rtol: float,
 #: background, without a response curve): a solve takes them in closed form
 LINEAR = ("flux", "background")
 
+def linear_names(model: ImageModel, free: Sequence[str]) -> list[str]:
+    """Those of ``free`` that enter the image linearly: each capture's flux and
+    background without bounds, where the image has no response curve."""
+    if model.response:
+        return []
+    return [k for k in free if k.split("@")[0] in LINEAR and model.params[k].bounds is None]
+
 def projected_names(model: ImageModel, free: Sequence[str], target) -> list[str]:
     """The free parameters a solve of ``free`` on ``target`` takes in closed form at every
-    step (variable projection): each capture's flux and background where they are free
-    without bounds, the image has no response curve, the residuals are pixels (not
-    spike profiles) and something else is free for the solver to move."""
-    if model.response or not all(isinstance(t, _PixelTarget) for t in _as_list(target)):
+    step (variable projection): :func:`linear_names`, where the residuals are pixels
+    (not spike profiles) and something else is free for the solver to move."""
+    if not all(isinstance(t, _PixelTarget) for t in _as_list(target)):
         return []
-    lin = [k for k in free if k.split("@")[0] in LINEAR and model.params[k].bounds is None]
+    lin = linear_names(model, free)
     return lin if len(lin) < len(free) else []
 
 def _solve_once(model: ImageModel, data, target, *, max_steps: int, rtol: float,

@@ -17,7 +17,7 @@ from ._data import FitData, noise_from_residuals, reject_outliers
 from ._detector import SourceImage
 from ._model import ImageModel
 from ._params import _PITCH, FitInputError, _finite, _whole
-from ._solve import LINEAR
+from ._solve import linear_names
 
 
 def _keyword_names(fn, leave_out=()) -> frozenset:
@@ -415,8 +415,7 @@ def _memory_of_first(model: ImageModel, datas: Sequence[FitData]):
     # the block structure (each star's columns zero on the other stars' pixels, the
     # solver then holding the compressed directions only): equal windows, and no shared
     # flux or background taken in closed form (it would couple the stars' residuals)
-    coupled = not model.response and any(
-        "@" not in q and q in LINEAR and model.params[q].bounds is None for q in free)
+    coupled = any("@" not in q for q in linear_names(model, free))
     blocked = bool(own) and not coupled and len({d.image.shape for d in datas}) == 1
 
     def need(m: int) -> float:
