@@ -131,7 +131,9 @@ def _in_range():
     return lo <= tuple(int(p) for p in jaxlib.__version__.split(".")[:3]) < hi
 
 
-@pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA's CPU fusions")
+@pytest.mark.skipif(jax.default_backend() != "cpu",
+                    reason="YNNPACK fusions are XLA's CPU backend's: on a GPU there is "
+                    "nothing to turn off")
 def test_import_difstar_turns_off_the_ynn_fusions_so_a_users_jit_is_right_too():
     """``import difstar`` (before any JAX computation) adds the flag to XLA_FLAGS where
     jaxlib is one that fuses with YNNPACK by default; a plain ``jax.jit`` of the

@@ -34,6 +34,7 @@ from ._normal_equations import (
     NormalDescent,
     column_colours,
     column_scale,
+    direction_seeds,
     equal_blocks,
     normal_equations,
 )
@@ -129,9 +130,7 @@ def with_batched_jacobian(raw: Callable, *, batch: int | None = None, mesh=None,
         if colour is None:
             eye = jnp.eye(rows_pad, n, dtype=u.dtype)
         else:  # each direction the sum of its columns' unit vectors
-            seeds = np.zeros((rows_pad, n))
-            seeds[colour, np.arange(n)] = 1.0
-            eye = jnp.asarray(seeds, u.dtype)
+            eye = jnp.asarray(direction_seeds(colour, rows_pad), u.dtype)
 
         def columns(eye, u, args):
             # one trace of the chain: linearised once, its linear map applied to the

@@ -99,7 +99,7 @@ def normal_equations(info, structure: BlockColumns | None = None):
     if structure is None:
         jac = info.jac.as_matrix()
         return jac.T @ jac, jac.T @ r
-    seeds = direction_seeds(structure)
+    seeds = direction_seeds(structure.colour)
 
     def along(seed):
         out = info.jac.mv(seed)
@@ -109,17 +109,19 @@ def normal_equations(info, structure: BlockColumns | None = None):
                                   structure)
 
 
-def direction_seeds(structure: BlockColumns) -> np.ndarray:
-    """The compressed directions (G, P): each the sum of its columns' unit vectors."""
-    colour = np.asarray(structure.colour)
-    seeds = np.zeros((int(colour.max()) + 1, colour.size))
+def direction_seeds(colour, count: int | None = None) -> np.ndarray:
+    """The compressed directions (G, P) of columns in directions ``colour``
+    (:func:`column_colours`): each the sum of its columns' unit vectors, with zero rows
+    after them up to ``count`` rows where given."""
+    colour = np.asarray(colour)
+    seeds = np.zeros((int(colour.max()) + 1 if count is None else count, colour.size))
     seeds[colour, np.arange(colour.size)] = 1.0
     return seeds
 
 
 def block_normal_equations(jc, r, structure: BlockColumns):
     """(JᵀJ, Jᵀr) from the Jacobian along the compressed directions ``jc`` (G, rows:
-    J times each of :func:`direction_seeds`) and the residuals ``r`` (rows), for a
+    J times each of :func:`direction_seeds` of its colours) and the residuals ``r`` (rows), for a
     Jacobian of that ``structure`` (:func:`normal_equations`)."""
     colour = np.asarray(structure.colour)
     owner = np.asarray(structure.owner)

@@ -114,18 +114,23 @@ def stored(fn, operands, key):
 def solver_jit_options() -> dict:
     """Keyword arguments for ``jax.jit`` / ``eqx.filter_jit`` of a solver's programs:
     those of :data:`SOLVER_CPU_OPTIONS` this jaxlib knows, where the default backend is
-    a CPU (a tiny program is compiled with each once per process to find out); nothing
+    a CPU (a tiny program is compiled with them once per process to find out, with each
+    alone where not all are known); nothing
     elsewhere (GPUs compile otherwise) or where ``jax.jit`` takes none (an older jax)."""
     if jax.default_backend() != "cpu":
         return {}
-    known = {}
-    for name, value in SOLVER_CPU_OPTIONS.items():
+
+    def compiles(options) -> bool:
         try:
-            jax.jit(lambda x: x + 1, compiler_options={name: value}).lower(
+            jax.jit(lambda x: x + 1, compiler_options=options).lower(
                 jnp.zeros(())).compile()
         except (jax.errors.JaxRuntimeError, TypeError):
             # "No such compile option" (a jaxlib without it), or a jax whose jit takes
             # no compiler options: compiled without it
-            continue
-        known[name] = value
+            return False
+        return True
+
+    # all at once (one compile), else each alone
+    known = dict(SOLVER_CPU_OPTIONS) if compiles(SOLVER_CPU_OPTIONS) else {
+        name: value for name, value in SOLVER_CPU_OPTIONS.items() if compiles({name: value})}
     return {"compiler_options": known} if known else {}

@@ -316,7 +316,7 @@ def _jacobian_program(model: ImageModel, data, values: Mapping[str, float], targ
             # compressed directions, a few at a time (pixels × directions², not the
             # dense pixels × parameters matrix and its pixels × parameters² product)
             structure = BlockColumns.of(column_blocks(model, free, target))
-            seeds = jnp.asarray(direction_seeds(structure))
+            seeds = jnp.asarray(direction_seeds(structure.colour))
 
             def normal_matrix(x, a):
                 (r, m), lin = jax.linearize(lambda x_: res(x_, a), x)
